@@ -1,0 +1,34 @@
+# Every target builds .venv from nothing when it is missing or stale.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export PYTHONPATH := $(CURDIR)
+
+.PHONY: install demo test test-slow benchmark clean
+
+$(STAMP): requirements.lock pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements.lock
+	touch $(STAMP)
+
+install: $(STAMP)
+
+## The main job: SUMO data -> CVQ-VAE -> diffusion -> evaluation (runs/demo/).
+demo: $(STAMP)
+	$(PY) experiments/run_demo.py --workdir=runs/demo
+
+## The default test run (< ~10 min on 2 cores).
+test: $(STAMP)
+	$(PY) -m pytest -q -n 2 -m "not slow"
+
+## Long tests (kill-and-resume, bigger configs).
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+benchmark: $(STAMP)
+	$(PY) experiments/benchmark_sampling.py
+
+clean:
+	rm -rf $(VENV) runs
