@@ -1,0 +1,16 @@
+"""Diffusion maths: schedules, parameterisations, loss, guidance and samplers."""
+
+from cvmdx_jax.diffusion.guidance import (GuidanceConfig, combine_eps, guidance_weight,
+                                          guided_eps, guided_v_fn)
+from cvmdx_jax.diffusion.losses import v_loss
+from cvmdx_jax.diffusion.param import (eps_from_v, eps_from_x0, q_sample, v_from_eps,
+                                       v_from_x0_eps, x0_from_v)
+from cvmdx_jax.diffusion.samplers import ddim_sample, ddpm_sample
+from cvmdx_jax.diffusion.schedule import Schedule, cosine_schedule, ddim_timesteps
+
+__all__ = [
+    "GuidanceConfig", "Schedule", "combine_eps", "cosine_schedule", "ddim_sample",
+    "ddim_timesteps", "ddpm_sample", "eps_from_v", "eps_from_x0", "guidance_weight",
+    "guided_eps", "guided_v_fn", "q_sample", "v_from_eps", "v_from_x0_eps", "v_loss",
+    "x0_from_v",
+]

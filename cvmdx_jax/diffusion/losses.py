@@ -1,0 +1,38 @@
+"""The v-prediction loss with conditioning dropout (for classifier-free guidance)."""
+
+import jax
+import jax.numpy as jnp
+
+from cvmdx_jax.diffusion import param
+from cvmdx_jax.diffusion.schedule import Schedule
+
+
+def v_loss(model_fn, x0, cond, key, schedule: Schedule, *, null_cond: int,
+           cond_drop_prob: float = 0.1, weight=None):
+  """E_{t, eps} ||v - v_theta(x_t, t, c)||^2 with c -> null with probability p.
+
+  Args:
+    model_fn: (x_t (B, ...), t (B,), cond (B,)) -> v (B, ...).
+    x0: (B, ...) clean (normalised) targets.
+    cond: (B,) int condition tokens.
+    key: PRNG key.
+    schedule: `Schedule`.
+    null_cond: the token that stands for "no condition".
+    cond_drop_prob: probability of replacing a token by `null_cond`.
+    weight: (B,) per-example weights (0 for padding rows); None = all ones.
+
+  Returns:
+    Scalar loss: the weighted mean over examples of the per-element mean squared error.
+  """
+  b = x0.shape[0]
+  k_t, k_eps, k_drop = jax.random.split(key, 3)
+  t = jax.random.randint(k_t, (b,), 0, schedule.num_steps)
+  eps = jax.random.normal(k_eps, x0.shape, x0.dtype)
+  abar = schedule.alphas_cumprod[t]
+  x_t = param.q_sample(x0, eps, abar)
+  drop = jax.random.bernoulli(k_drop, cond_drop_prob, (b,))
+  cond = jnp.where(drop, null_cond, cond)
+  err = (model_fn(x_t, t, cond) - param.v_from_x0_eps(x0, eps, abar)) ** 2
+  per_example = jnp.mean(err.reshape(b, -1), axis=-1)
+  weight = jnp.ones((b,), per_example.dtype) if weight is None else weight
+  return jnp.sum(weight * per_example) / jnp.maximum(jnp.sum(weight), 1.0)

@@ -1,0 +1,112 @@
+"""The inference path: (denoiser params, tokens q, delta, v0, psi0, keys) ->
+N sampled control sequences, their trajectories, the mean trajectory and the
+hypotheses, in one jitted call.
+
+Each scenario draws its noise from its own key, so a scenario's samples do not
+depend on which other scenarios share the batch.
+"""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from cvmdx_jax import constants, normalization, vmm
+from cvmdx_jax.diffusion import GuidanceConfig, Schedule, ddim_sample, ddpm_sample, guided_v_fn
+from cvmdx_jax.models.unet1d import apply_unet
+from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
+
+SAMPLERS = ("ddim", "ddpm")
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplingConfig:
+  """Static sampling settings (paper defaults).
+
+  Attributes:
+    num_samples: N samples per scenario.
+    sampler: "ddim" (S steps) or "ddpm" (all T steps, the cVMD way).
+    steps: S, DDIM steps.
+    eta: DDIM noise (0 = deterministic).
+    clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
+      official sampler clips to [-1, 1]); None = no clipping.
+    guidance: `GuidanceConfig`.
+    hypotheses: `HypothesisConfig`.
+  """
+
+  num_samples: int = 9
+  sampler: str = "ddim"
+  steps: int = 10
+  eta: float = 0.0
+  clip_x0: float | None = 1.0
+  guidance: GuidanceConfig = GuidanceConfig()
+  hypotheses: HypothesisConfig = HypothesisConfig()
+
+  def __post_init__(self):
+    if self.sampler not in SAMPLERS:
+      raise ValueError(f"sampling.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
+    if self.num_samples < 1:
+      raise ValueError(f"sampling.num_samples must be >= 1, got {self.num_samples}")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+  """Predictions for B scenarios.
+
+  Attributes:
+    controls: (B, N, 125, 2) sampled [a_x m/s^2, yaw_rate rad/s].
+    trajectories: (B, N, 125, 2) positions in metres (scenario frame).
+    mean: (B, 125, 2) the sample mean trajectory.
+    hypotheses: `Hypotheses` (means (B, c_max, 125, 2), probs (B, c_max), ...).
+  """
+
+  controls: jax.Array
+  trajectories: jax.Array
+  mean: jax.Array
+  hypotheses: Hypotheses
+
+
+def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null_token: int,
+                    config: SamplingConfig):
+  """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2)."""
+  n = config.num_samples
+  model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c)
+  v_fn = guided_v_fn(model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule,
+                     config.guidance)
+  shape = (n, constants.T_PRED, 2)
+  if config.sampler == "ddpm":
+    return ddpm_sample(v_fn, key, shape, schedule, clip_x0=config.clip_x0)
+  return ddim_sample(v_fn, key, shape, schedule, steps=config.steps, eta=config.eta,
+                     clip_x0=config.clip_x0)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "null_token", "config"))
+def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Schedule,
+                  null_token: int, config: SamplingConfig = SamplingConfig()) -> Prediction:
+  """Samples, rolls out and clusters predictions for B scenarios.
+
+  Args:
+    graphdef: the U-Net graph definition (static).
+    params: U-Net parameters.
+    q: (B,) int scenario tokens.
+    delta: (B,) Mahalanobis uncertainty of each scenario.
+    v0: (B,) ego speed at t0, m/s.
+    psi0: (B,) ego heading at t0, rad.
+    keys: (B,) PRNG keys, one per scenario.
+    schedule: the diffusion `Schedule` the model was trained with.
+    null_token: the unconditional token (Q).
+    config: `SamplingConfig`.
+
+  Returns:
+    `Prediction`.
+  """
+  x0 = jax.vmap(lambda qi, di, ki: sample_controls(
+      graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
+      config=config))(q, delta, keys)
+  controls = normalization.denormalize_controls(x0)
+  trajectories = vmm.rollout(controls, v0[:, None], psi0[:, None])
+  return Prediction(controls=controls, trajectories=trajectories,
+                    mean=jnp.mean(trajectories, axis=1),
+                    hypotheses=fit_hypotheses(trajectories, config=config.hypotheses))

@@ -1,0 +1,81 @@
+"""Trajectory metrics in metres (Euclidean), channels-last (..., T, 2).
+
+Hypothesis sets carry a validity mask (probability > 0) so that unused GMM slots
+never count in best-of-K metrics.
+"""
+
+import jax.numpy as jnp
+
+MISS_THRESHOLD_M = 2.0  # final displacement above which a prediction misses
+HIT_LATERAL_M = 1.75  # final lateral error below which a prediction hits (half a lane)
+
+
+def displacement(pred, gt):
+  """(..., T, 2), (..., T, 2) -> (..., T) Euclidean error per step."""
+  return jnp.linalg.norm(pred - gt, axis=-1)
+
+
+def ade(pred, gt):
+  """Average displacement error over all steps: (..., T, 2) -> (...,)."""
+  return jnp.mean(displacement(pred, gt), axis=-1)
+
+
+def fde(pred, gt):
+  """Final displacement error (last step, 5 s): (..., T, 2) -> (...,)."""
+  return displacement(pred[..., -1, :], gt[..., -1, :])
+
+
+def _per_hypothesis(fn, hyps, gt, valid):
+  err = fn(hyps, gt[..., None, :, :])  # (..., K)
+  return jnp.where(valid, err, jnp.inf)
+
+
+def min_ade_k(hyps, gt, valid):
+  """minADE_K over K hypotheses: hyps (..., K, T, 2), gt (..., T, 2), valid (..., K) -> (...,)."""
+  return jnp.min(_per_hypothesis(ade, hyps, gt, valid), axis=-1)
+
+
+def min_fde_k(hyps, gt, valid):
+  """minFDE_K over K hypotheses (see `min_ade_k`)."""
+  return jnp.min(_per_hypothesis(fde, hyps, gt, valid), axis=-1)
+
+
+def most_likely(hyps, probs):
+  """The hypothesis with the highest probability: (..., K, T, 2), (..., K) -> (..., T, 2)."""
+  idx = jnp.argmax(probs, axis=-1)
+  return jnp.take_along_axis(hyps, idx[..., None, None, None], axis=-3)[..., 0, :, :]
+
+
+def miss(pred_final_error):
+  """1.0 where the final displacement exceeds 2 m."""
+  return (pred_final_error > MISS_THRESHOLD_M).astype(jnp.float32)
+
+
+def hit(pred, gt):
+  """1.0 where the final lateral error is below 1.75 m: (..., T, 2) -> (...,)."""
+  return (jnp.abs(pred[..., -1, 1] - gt[..., -1, 1]) < HIT_LATERAL_M).astype(jnp.float32)
+
+
+def multimodal_metrics(mean, hyp_means, hyp_probs, gt):
+  """All per-scenario metrics of one prediction set.
+
+  Args:
+    mean: (B, T, 2) mean trajectory.
+    hyp_means: (B, K, T, 2) hypothesis means.
+    hyp_probs: (B, K) hypothesis probabilities (0 = unused slot).
+    gt: (B, T, 2) ground truth.
+
+  Returns:
+    dict of (B,) arrays: mean_ade, mean_fde, ml_ade, ml_fde, min_ade_k,
+    min_fde_k, miss_rate (best-of-K final error > 2 m), hit_rate (mean
+    trajectory's final lateral error < 1.75 m), ml_hit_rate.
+  """
+  valid = hyp_probs > 0
+  ml = most_likely(hyp_means, hyp_probs)
+  min_fde = min_fde_k(hyp_means, gt, valid)
+  return {
+      "mean_ade": ade(mean, gt), "mean_fde": fde(mean, gt),
+      "ml_ade": ade(ml, gt), "ml_fde": fde(ml, gt),
+      "min_ade_k": min_ade_k(hyp_means, gt, valid), "min_fde_k": min_fde,
+      "miss_rate": miss(min_fde), "hit_rate": hit(mean, gt), "ml_hit_rate": hit(ml, gt),
+  }

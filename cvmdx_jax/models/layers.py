@@ -1,0 +1,91 @@
+"""Building blocks of the 1-D U-Net: timestep embedding, FiLM residual block,
+self-attention, resampling. Channels-last: (B, L, C)."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+
+def timestep_embedding(t, dim: int, max_period: float = 10000.0):
+  """Sinusoidal embedding of integer timesteps t (B,) -> (B, dim)."""
+  half = dim // 2
+  freqs = jnp.exp(-math.log(max_period) * jnp.arange(half, dtype=jnp.float32) / half)
+  args = jnp.asarray(t, jnp.float32)[:, None] * freqs[None]
+  return jnp.concatenate([jnp.cos(args), jnp.sin(args)], axis=-1)
+
+
+def _norm(channels: int, groups: int, rngs):
+  return nnx.GroupNorm(channels, num_groups=min(groups, channels), rngs=rngs)
+
+
+class ResBlock(nnx.Module):
+  """GroupNorm-SiLU-Conv, FiLM (scale, shift) from the embedding, GroupNorm-SiLU-
+  Dropout-Conv (zero-initialised), plus a 1x1 skip where channels change."""
+
+  def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
+               *, rngs: nnx.Rngs):
+    self.norm1 = _norm(in_ch, groups, rngs)
+    self.conv1 = nnx.Conv(in_ch, out_ch, kernel_size=(3,), rngs=rngs)
+    self.film = nnx.Linear(emb_dim, 2 * out_ch, rngs=rngs)
+    self.norm2 = _norm(out_ch, groups, rngs)
+    self.dropout = nnx.Dropout(dropout)
+    self.conv2 = nnx.Conv(out_ch, out_ch, kernel_size=(3,), kernel_init=nnx.initializers.zeros,
+                          rngs=rngs)
+    self.skip = (nnx.Conv(in_ch, out_ch, kernel_size=(1,), rngs=rngs) if in_ch != out_ch
+                 else None)
+
+  def __call__(self, x, emb, dropout_key=None):
+    h = self.conv1(jax.nn.silu(self.norm1(x)))
+    scale, shift = jnp.split(self.film(jax.nn.silu(emb))[:, None, :], 2, axis=-1)
+    h = jax.nn.silu(self.norm2(h) * (1.0 + scale) + shift)
+    if dropout_key is not None:
+      h = self.dropout(h, deterministic=False, rngs=dropout_key)
+    h = self.conv2(h)
+    return h + (x if self.skip is None else self.skip(x))
+
+
+class ResAttnBlock(nnx.Module):
+  """A residual block, followed by self-attention when `num_heads` > 0."""
+
+  def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
+               num_heads: int, *, rngs: nnx.Rngs):
+    self.res = ResBlock(in_ch, out_ch, emb_dim, groups, dropout, rngs=rngs)
+    self.attn = AttentionBlock(out_ch, num_heads, groups, rngs=rngs) if num_heads else None
+
+  def __call__(self, x, emb, dropout_key=None):
+    h = self.res(x, emb, dropout_key)
+    return h if self.attn is None else self.attn(h)
+
+
+class AttentionBlock(nnx.Module):
+  """Pre-norm multi-head self-attention over the sequence axis, residual."""
+
+  def __init__(self, channels: int, num_heads: int, groups: int, *, rngs: nnx.Rngs):
+    self.norm = _norm(channels, groups, rngs)
+    self.attn = nnx.MultiHeadAttention(num_heads=num_heads, in_features=channels,
+                                       decode=False, rngs=rngs)
+
+  def __call__(self, x):
+    return x + self.attn(self.norm(x))
+
+
+class Downsample(nnx.Module):
+  """Strided convolution, L -> L / 2."""
+
+  def __init__(self, channels: int, *, rngs: nnx.Rngs):
+    self.conv = nnx.Conv(channels, channels, kernel_size=(3,), strides=(2,), rngs=rngs)
+
+  def __call__(self, x):
+    return self.conv(x)
+
+
+class Upsample(nnx.Module):
+  """Nearest-neighbour repeat then convolution, L -> 2 L."""
+
+  def __init__(self, channels: int, *, rngs: nnx.Rngs):
+    self.conv = nnx.Conv(channels, channels, kernel_size=(3,), rngs=rngs)
+
+  def __call__(self, x):
+    return self.conv(jnp.repeat(x, 2, axis=1))

@@ -1,0 +1,151 @@
+"""1-D U-Net denoiser v_theta(x_t, t, q) over the (B, 125, 2) control sequence.
+
+Reference defaults (cVMDx): 128 base channels, multipliers (1, 2, 3, 4), one
+residual block per level, 4-head self-attention at the two coarsest levels,
+FiLM conditioning from timestep embedding + learned token embedding with one
+extra null token (index `num_tokens`) for classifier-free guidance. The sequence
+is zero-padded from 125 to 128 and cropped back.
+
+Functional use: `graphdef, params = init_unet(config, key)`, then
+`apply_unet(graphdef, params, x_t, t, q)` inside `jax.jit`.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from cvmdx_jax import constants
+from cvmdx_jax.models.layers import Downsample, ResAttnBlock, Upsample, timestep_embedding
+
+
+@dataclasses.dataclass(frozen=True)
+class UNetConfig:
+  """Static U-Net sizes.
+
+  Attributes:
+    num_tokens: Q, the codebook size; token Q is the null token.
+    base_channels: channels at the finest level.
+    channel_mult: per-level channel multipliers (the sequence halves per level).
+    num_res_blocks: residual blocks per level on the way down (one more up).
+    emb_mult: timestep/token embedding width = emb_mult * base_channels (reference: 2).
+    attention_levels: level indices with self-attention (default: the two coarsest).
+    num_heads: attention heads.
+    groups: GroupNorm groups.
+    dropout: dropout rate inside residual blocks (training only).
+    channels: input/output channels (2: a_x, yaw rate).
+    length: sequence length (125).
+    padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)).
+  """
+
+  num_tokens: int = 60
+  base_channels: int = 128
+  channel_mult: tuple[int, ...] = (1, 2, 3, 4)
+  num_res_blocks: int = 1
+  emb_mult: int = 2
+  attention_levels: tuple[int, ...] = (2, 3)
+  num_heads: int = 4
+  groups: int = 32
+  dropout: float = 0.0
+  channels: int = 2
+  length: int = constants.T_PRED
+  padded_length: int = 128
+
+  def __post_init__(self):
+    factor = 2 ** (len(self.channel_mult) - 1)
+    if self.padded_length % factor or self.padded_length < self.length:
+      raise ValueError(f"padded_length={self.padded_length} must be >= length={self.length} "
+                       f"and divisible by {factor}")
+
+  @property
+  def null_token(self) -> int:
+    return self.num_tokens
+
+
+class UNet1D(nnx.Module):
+  """`model(x_t (B, L, C), t (B,) int, q (B,) int) -> v (B, L, C)`."""
+
+  def __init__(self, config: UNetConfig, *, rngs: nnx.Rngs):
+    self.config = config
+    ch, levels = config.base_channels, len(config.channel_mult)
+    emb_dim = config.emb_mult * ch
+
+    def block(level, in_ch, out_ch):
+      heads = config.num_heads if level in config.attention_levels else 0
+      return ResAttnBlock(in_ch, out_ch, emb_dim, config.groups, config.dropout, heads,
+                          rngs=rngs)
+
+    self.time_mlp1 = nnx.Linear(ch, emb_dim, rngs=rngs)
+    self.time_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
+    self.token_embed = nnx.Embed(config.num_tokens + 1, emb_dim, rngs=rngs)
+    self.conv_in = nnx.Conv(config.channels, ch, kernel_size=(3,), rngs=rngs)
+
+    skip_channels, down_blocks, down_samples, cur = [ch], [], [], ch
+    for level, mult in enumerate(config.channel_mult):
+      for _ in range(config.num_res_blocks):
+        down_blocks.append(block(level, cur, mult * ch))
+        cur = mult * ch
+        skip_channels.append(cur)
+      if level < levels - 1:
+        down_samples.append(Downsample(cur, rngs=rngs))
+        skip_channels.append(cur)
+    self.down_blocks, self.down_samples = nnx.List(down_blocks), nnx.List(down_samples)
+    # middle: residual + attention, then residual
+    self.mid = nnx.List([
+        ResAttnBlock(cur, cur, emb_dim, config.groups, config.dropout, config.num_heads,
+                     rngs=rngs),
+        ResAttnBlock(cur, cur, emb_dim, config.groups, config.dropout, 0, rngs=rngs)])
+
+    up_blocks, up_samples = [], []
+    for level, mult in reversed(list(enumerate(config.channel_mult))):
+      for _ in range(config.num_res_blocks + 1):
+        up_blocks.append(block(level, cur + skip_channels.pop(), mult * ch))
+        cur = mult * ch
+      if level > 0:
+        up_samples.append(Upsample(cur, rngs=rngs))
+    self.up_blocks, self.up_samples = nnx.List(up_blocks), nnx.List(up_samples)
+    self.norm_out = nnx.GroupNorm(cur, num_groups=min(config.groups, cur), rngs=rngs)
+    self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
+                             kernel_init=nnx.initializers.zeros, rngs=rngs)
+
+  def __call__(self, x_t, t, q, dropout_key=None):
+    cfg = self.config
+    keys = iter(jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
+                if dropout_key is not None else [])
+    key = lambda: next(keys, None)
+    emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
+    emb = emb + self.token_embed(q)
+    h = self.conv_in(jnp.pad(x_t, ((0, 0), (0, cfg.padded_length - x_t.shape[1]), (0, 0))))
+    skips, blocks = [h], iter(self.down_blocks)
+    for level in range(len(cfg.channel_mult)):
+      for _ in range(cfg.num_res_blocks):
+        h = next(blocks)(h, emb, key())
+        skips.append(h)
+      if level < len(self.down_samples):
+        h = self.down_samples[level](h)
+        skips.append(h)
+    for mid in self.mid:
+      h = mid(h, emb, key())
+    blocks, samples = iter(self.up_blocks), iter(self.up_samples)
+    for level in reversed(range(len(cfg.channel_mult))):
+      for _ in range(cfg.num_res_blocks + 1):
+        h = next(blocks)(jnp.concatenate([h, skips.pop()], axis=-1), emb, key())
+      if level > 0:
+        h = next(samples)(h)
+    out = self.conv_out(jax.nn.silu(self.norm_out(h)))
+    return out[:, :x_t.shape[1]]
+
+
+def init_unet(config: UNetConfig, key: jax.Array):
+  """Builds the model; returns (graphdef, params), params a pytree of arrays."""
+  return nnx.split(UNet1D(config, rngs=nnx.Rngs(params=key)))
+
+
+def apply_unet(graphdef, params, x_t, t, q, dropout_key=None):
+  """Functional forward pass: v (B, L, C)."""
+  return nnx.merge(graphdef, params)(x_t, t, q, dropout_key)
+
+
+def count_params(params) -> int:
+  return sum(x.size for x in jax.tree.leaves(params))

@@ -1,0 +1,107 @@
+"""1-D U-Net: shapes, parameter count, null token, dropout, no retracing."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cvmdx_jax.models import unet1d
+
+TINY = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
+                         attention_levels=(1,), num_heads=2, dropout=0.1, padded_length=128)
+
+
+def _inputs(b=3):
+  x = jax.random.normal(jax.random.key(0), (b, 125, 2))
+  return x, jnp.arange(b) * 300, jnp.arange(b) % 5
+
+
+def _params_count_by_hand(cfg):
+  """Counts parameters of the documented architecture from its description."""
+  ch, e = cfg.base_channels, cfg.emb_mult * cfg.base_channels
+  conv = lambda i, o, k=3: k * i * o + o
+  norm = lambda c: 2 * c
+  res = lambda i, o: (norm(i) + conv(i, o) + e * 2 * o + 2 * o + norm(o) + conv(o, o)
+                      + (conv(i, o, 1) if i != o else 0))
+  attn = lambda c: norm(c) + 4 * (c * c + c)
+  total = ch * e + e + e * e + e + (cfg.num_tokens + 1) * e + conv(cfg.channels, ch)
+  skips, cur = [ch], ch
+  levels = len(cfg.channel_mult)
+  for lvl, m in enumerate(cfg.channel_mult):
+    total += res(cur, m * ch) + (attn(m * ch) if lvl in cfg.attention_levels else 0)
+    cur = m * ch
+    skips.append(cur)
+    if lvl < levels - 1:
+      total += conv(cur, cur)
+      skips.append(cur)
+  total += 2 * res(cur, cur) + attn(cur)
+  for lvl, m in reversed(list(enumerate(cfg.channel_mult))):
+    for _ in range(2):
+      total += res(cur + skips.pop(), m * ch) + (attn(m * ch) if lvl in cfg.attention_levels
+                                                  else 0)
+      cur = m * ch
+    if lvl > 0:
+      total += conv(cur, cur)
+  return total + norm(cur) + conv(cur, cfg.channels)
+
+
+def test_shapes_and_param_count_tiny():
+  g, p = unet1d.init_unet(TINY, jax.random.key(0))
+  x, t, q = _inputs()
+  out = unet1d.apply_unet(g, p, x, t, q)
+  assert out.shape == (3, 125, 2)
+  assert unet1d.count_params(p) == _params_count_by_hand(TINY)
+
+
+def test_default_config_param_counts():
+  shapes = lambda cfg: jax.eval_shape(lambda: unet1d.init_unet(cfg, jax.random.key(0))[1])
+  default = unet1d.UNetConfig(num_tokens=256)
+  assert unet1d.count_params(shapes(default)) == _params_count_by_hand(default) == 27_399_298
+  reference = unet1d.UNetConfig(num_tokens=256, attention_levels=())
+  n_ref = unet1d.count_params(shapes(reference))
+  assert n_ref == _params_count_by_hand(reference)
+  assert abs(n_ref - 22.5e6) < 0.1e6  # the official code's 22.5 M (attention only in the middle)
+
+
+def test_zero_initialised_output_and_token_paths():
+  g, p = unet1d.init_unet(TINY, jax.random.key(1))
+  x, t, q = _inputs()
+  np.testing.assert_array_equal(unet1d.apply_unet(g, p, x, t, q), 0.0)  # zero-init head
+  p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(2), a.shape), p)
+  cond = unet1d.apply_unet(g, p, x, t, q)
+  null = unet1d.apply_unet(g, p, x, t, jnp.full_like(q, TINY.null_token))
+  assert np.all(np.isfinite(null)) and not np.allclose(cond, null)
+  # each output row depends only on its own row (no batch mixing)
+  solo = unet1d.apply_unet(g, p, x[:1], t[:1], q[:1])
+  np.testing.assert_allclose(solo, cond[:1], atol=1e-5)
+
+
+def test_dropout_only_with_key():
+  g, p = unet1d.init_unet(TINY, jax.random.key(3))
+  p = jax.tree.map(lambda a: a + 0.05, p)
+  x, t, q = _inputs()
+  a = unet1d.apply_unet(g, p, x, t, q)
+  b = unet1d.apply_unet(g, p, x, t, q)
+  c = unet1d.apply_unet(g, p, x, t, q, jax.random.key(0))
+  np.testing.assert_array_equal(a, b)
+  assert not np.allclose(a, c)
+
+
+def test_no_retracing_across_calls():
+  g, p = unet1d.init_unet(TINY, jax.random.key(4))
+  traces = []
+
+  @jax.jit
+  def f(params, x, t, q):
+    traces.append(1)
+    return unet1d.apply_unet(g, params, x, t, q)
+
+  for seed in range(3):
+    x, t, q = _inputs()
+    f(p, x + seed, t, q).block_until_ready()
+  assert len(traces) == 1
+
+
+def test_bad_padding_rejected():
+  with pytest.raises(ValueError, match="padded_length"):
+    unet1d.UNetConfig(padded_length=126)

@@ -1,0 +1,66 @@
+"""The jitted inference path: shapes, physics, determinism, batch independence."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cvmdx_jax import diffusion, inference, normalization, vmm
+from cvmdx_jax.models import unet1d
+
+CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
+                        attention_levels=(1,), num_heads=2)
+SAMPLING = inference.SamplingConfig(num_samples=9, steps=4)
+
+
+@pytest.fixture(scope="module")
+def model():
+  g, p = unet1d.init_unet(CFG, jax.random.key(0))
+  p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
+  return g, p
+
+
+def _predict(model, keys, b=3, config=SAMPLING):
+  g, p = model
+  q = jnp.arange(b) % 4
+  return inference.predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
+                                 jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
+                                 null_token=CFG.null_token, config=config)
+
+
+def test_shapes_and_consistency(model):
+  keys = jax.random.split(jax.random.key(0), 3)
+  out = _predict(model, keys)
+  assert out.controls.shape == out.trajectories.shape == (3, 9, 125, 2)
+  assert out.mean.shape == (3, 125, 2)
+  assert out.hypotheses.means.shape == (3, 3, 125, 2)
+  np.testing.assert_allclose(out.hypotheses.probs.sum(-1), 1.0, atol=1e-6)
+  np.testing.assert_allclose(out.mean, out.trajectories.mean(1), atol=1e-4)
+  # trajectories are the VMM rollout of the controls, which stay in the normalised caps
+  np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)
+  x0 = out.controls / normalization.denormalize_controls(jnp.ones(2))
+  assert float(jnp.abs(x0).max()) <= 1.0 + 1e-5
+
+
+def test_deterministic_and_batch_independent(model):
+  keys = jax.random.split(jax.random.key(7), 3)
+  a, b = _predict(model, keys), _predict(model, keys)
+  np.testing.assert_array_equal(a.trajectories, b.trajectories)
+  other = _predict(model, jax.random.split(jax.random.key(8), 3))
+  assert not np.allclose(a.trajectories, other.trajectories)
+  g, p = model
+  solo = inference.predict_batch(g, p, jnp.array([1]), jnp.array([30.0]), jnp.array([30.0]),
+                                 jnp.zeros(1), keys[1:2], schedule=diffusion.cosine_schedule(),
+                                 null_token=CFG.null_token, config=SAMPLING)
+  np.testing.assert_allclose(solo.trajectories[0], a.trajectories[1], atol=1e-3)
+
+
+def test_ddpm_path_and_bad_config(model):
+  cfg = dataclasses.replace(SAMPLING, sampler="ddpm", num_samples=3,
+                            hypotheses=dataclasses.replace(SAMPLING.hypotheses, c_max=2))
+  out = _predict(model, jax.random.split(jax.random.key(0), 2), b=2, config=cfg)
+  assert out.trajectories.shape == (2, 3, 125, 2)
+  with pytest.raises(ValueError, match="sampler"):
+    inference.SamplingConfig(sampler="euler")

@@ -1,0 +1,44 @@
+"""Metrics against hand-worked values."""
+
+import numpy as np
+
+from cvmdx_jax import metrics
+
+
+def _line(dx, dy, t=125):
+  return np.stack([np.full(t, dx), np.full(t, dy)], -1).astype(np.float32)
+
+
+def test_ade_fde_by_hand():
+  gt = np.zeros((125, 2), np.float32)
+  pred = np.stack([np.linspace(0, 4, 125), np.zeros(125)], -1).astype(np.float32)
+  assert np.isclose(metrics.ade(pred, gt), 2.0, atol=1e-5)
+  assert np.isclose(metrics.fde(pred, gt), 4.0)
+  assert np.isclose(metrics.fde(_line(3, 4), gt), 5.0)
+
+
+def test_min_k_masks_unused_slots():
+  gt = np.zeros((125, 2), np.float32)
+  hyps = np.stack([_line(3, 4), _line(0, 1), _line(0, 0)])  # slot 2 perfect but unused
+  valid = np.array([True, True, False])
+  assert np.isclose(metrics.min_ade_k(hyps, gt, valid), 1.0)
+  assert np.isclose(metrics.min_fde_k(hyps, gt, valid), 1.0)
+
+
+def test_most_likely_and_rates():
+  gt = np.zeros((2, 125, 2), np.float32)
+  hyps = np.stack([np.stack([_line(0, 2.5), _line(1, 0), _line(0, 0)]),
+                   np.stack([_line(0, 1), _line(5, 0), _line(0, 0)])])
+  probs = np.array([[0.3, 0.7, 0.0], [0.6, 0.4, 0.0]], np.float32)
+  ml = np.asarray(metrics.most_likely(hyps, probs))
+  np.testing.assert_allclose(ml[0], _line(1, 0))
+  np.testing.assert_allclose(ml[1], _line(0, 1))
+  out = metrics.multimodal_metrics(mean=np.stack([_line(0, 2.0), _line(0, 1.0)]),
+                                   hyp_means=hyps, hyp_probs=probs, gt=gt)
+  np.testing.assert_allclose(out["mean_fde"], [2.0, 1.0])
+  np.testing.assert_allclose(out["ml_ade"], [1.0, 1.0])
+  np.testing.assert_allclose(out["min_fde_k"], [1.0, 1.0])
+  np.testing.assert_allclose(out["hit_rate"], [0.0, 1.0])  # lateral 2.0 m vs 1.0 m
+  np.testing.assert_allclose(out["miss_rate"], [0.0, 0.0])
+  far = metrics.multimodal_metrics(mean=gt + 3, hyp_means=hyps + 3, hyp_probs=probs, gt=gt)
+  np.testing.assert_allclose(far["miss_rate"], [1.0, 1.0])
