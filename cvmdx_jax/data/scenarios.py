@@ -1,0 +1,111 @@
+"""`Scenarios`: the one data contract every reader produces and every model reads.
+
+Frame: road-aligned and right-handed, x along the road in the ego's direction of
+travel, y to the driver's left, origin at the ego's position at the last observed
+step t0. Units: metres, seconds, m/s, m/s^2, rad.
+"""
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from cvmdx_jax import constants
+
+# field name -> (trailing shape, dtype)
+FIELDS = {
+    "xi": ((constants.NUM_VEHICLES, constants.T_OBS, constants.NUM_FEATURES), np.float32),
+    "mask": ((constants.NUM_VEHICLES, constants.T_OBS), np.bool_),
+    "future": ((constants.T_PRED, 2), np.float32),
+    "controls": ((constants.T_PRED, 2), np.float32),
+    "v0": ((), np.float32),
+    "psi0": ((), np.float32),
+    "label": ((), np.int32),
+    "time_to_lane_change": ((), np.float32),
+    "recording_id": ((), np.int32),
+    "track_id": ((), np.int32),
+    "frame": ((), np.int32),
+}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Scenarios:
+  """M scenarios as arrays (numpy or JAX), all with leading dimension M.
+
+  Attributes:
+    xi: (M, 9, 75, 4) [x, y, v_x, v_y] of ego + 8 neighbours (slot order
+      `constants.VEHICLE_SLOTS`), 0 where `mask` is False.
+    mask: (M, 9, 75) True where the vehicle exists at that step.
+    future: (M, 125, 2) ego positions after t0 (steps t0+1 .. t0+125).
+    controls: (M, 125, 2) [a_x m/s^2, yaw_rate rad/s]; `vmm.rollout(controls,
+      v0, psi0)` reproduces `future`.
+    v0: (M,) ego speed at t0, m/s.
+    psi0: (M,) ego heading at t0 relative to the road axis, rad.
+    label: (M,) 0 keep lane, 1 lane change right, 2 lane change left.
+    time_to_lane_change: (M,) s from t0 to the lane crossing; -1 for keep lane
+      or where unknown.
+    recording_id, track_id, frame: (M,) provenance (frame = highD frame of t0);
+      -1 where unknown.
+  """
+
+  xi: np.ndarray
+  mask: np.ndarray
+  future: np.ndarray
+  controls: np.ndarray
+  v0: np.ndarray
+  psi0: np.ndarray
+  label: np.ndarray
+  time_to_lane_change: np.ndarray
+  recording_id: np.ndarray
+  track_id: np.ndarray
+  frame: np.ndarray
+
+  def __len__(self) -> int:
+    return int(self.label.shape[0])
+
+  def take(self, index) -> "Scenarios":
+    """The scenarios at `index` (an int array, slice or boolean mask)."""
+    return Scenarios(**{k: np.asarray(v)[index] for k, v in self.as_dict().items()})
+
+  def as_dict(self) -> dict:
+    return {name: getattr(self, name) for name in FIELDS}
+
+  def validate(self, source: str = "scenarios") -> "Scenarios":
+    """Checks shapes, dtypes and finiteness; raises ValueError naming the field."""
+    m = len(self)
+    for name, (shape, dtype) in FIELDS.items():
+      value = np.asarray(getattr(self, name))
+      if value.shape != (m, *shape):
+        raise ValueError(f"{source}: field '{name}' has shape {value.shape}, "
+                         f"expected {(m, *shape)}")
+      if value.dtype != dtype:
+        raise ValueError(f"{source}: field '{name}' has dtype {value.dtype}, "
+                         f"expected {np.dtype(dtype)}")
+      if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
+        bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
+        raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
+    if np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
+      raise ValueError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
+    return self
+
+
+def from_arrays(**arrays) -> Scenarios:
+  """Builds `Scenarios` casting each field to its contract dtype; missing
+  provenance fields (time_to_lane_change, recording_id, track_id, frame) are -1."""
+  m = len(arrays["label"])
+  out = {}
+  for name, (_, dtype) in FIELDS.items():
+    value = arrays.get(name)
+    out[name] = (np.full((m,), -1, dtype) if value is None
+                 else np.asarray(value).astype(dtype, copy=False))
+  return Scenarios(**out).validate()
+
+
+def concatenate(parts) -> Scenarios:
+  """Concatenates a sequence of `Scenarios` along M."""
+  parts = list(parts)
+  if not parts:
+    raise ValueError("concatenate: empty sequence of Scenarios")
+  return Scenarios(**{name: np.concatenate([getattr(p, name) for p in parts])
+                      for name in FIELDS})
