@@ -1,0 +1,103 @@
+"""Motion diffusion model (U-Net denoiser + sampling) config.
+
+Run (after make_dataset and train_tokenizer):
+  PYTHONPATH=. .venv/bin/python experiments/train_diffusion.py \\
+      --config=configs/diffusion.py:demo --workdir=runs/demo/diffusion \\
+      --config.data_dir=runs/demo/data --config.tokenizer_dir=runs/demo/tokenizer
+Presets after the path: `:tiny` (seconds, tests), `:demo` (the CPU default of the
+`make demo` pipeline: a small U-Net trained for a few minutes on 2 cores), `:paper`
+(the reference U-Net: 128 channels, (1, 2, 3, 4), attention at the two coarsest
+levels; batch 256, lr 2e-4, 2000 epochs: a GPU job), `:reference` (as paper, but with
+attention only in the middle block, which is what the official code's
+attention_resolutions="16,8" yields for length 125: its 22.5 M parameters).
+No preset: the paper model with a CPU-feasible epoch count. Any field can be
+overridden: `--config.sampling.steps=20`, `--config.train.num_epochs=50`.
+"""
+
+import ml_collections
+
+from configs import common
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+  """Returns the diffusion config for `arg` (see the module docstring)."""
+  arg = common.parse_arg(arg, tiny=False, demo=False, paper=False, reference=False)
+  config = ml_collections.ConfigDict()
+  config.data_dir = "data/sumo"  # dataset folder (cvmdx_jax.data.dataset)
+  config.tokenizer_dir = "runs/tokenizer"  # tokeniser run whose tokens condition the model
+  config.seed = 0  # init, example order, step keys
+
+  config.model = ml_collections.ConfigDict()
+  config.model.base_channels = 128  # channels at the finest level
+  config.model.channel_mult = (1, 2, 3, 4)  # per-level multipliers
+  config.model.num_res_blocks = 1  # residual blocks per level
+  config.model.emb_mult = 2  # embedding width / base_channels (reference: 2)
+  config.model.attention_levels = (2, 3)  # levels with self-attention
+  config.model.num_heads = 4  # attention heads
+  config.model.groups = 32  # GroupNorm groups
+  config.model.dropout = 0.0  # residual-block dropout (reference: 0)
+
+  config.diffusion = ml_collections.ConfigDict()
+  config.diffusion.num_steps = 1000  # T of the cosine schedule
+  config.diffusion.cond_drop_prob = 0.1  # CFG conditioning dropout (paper 10 %, ref 20 %)
+
+  config.train = ml_collections.ConfigDict()
+  config.train.batch_size = 256  # global batch (paper)
+  config.train.num_epochs = 100  # paper: 2000
+  config.train.learning_rate = 2e-4  # peak AdamW lr (paper)
+  config.train.warmup_steps = 3000  # linear warm-up (reference); capped at 10 % of the run
+  config.train.min_lr = 1e-6  # end of the cosine decay (reference)
+  config.train.weight_decay = 0.0  # AdamW decoupled weight decay (reference: 0)
+  config.train.grad_clip = 1.0  # global-norm clipping
+  config.train.ema_decay = 0.9999  # EMA of the weights used for inference (reference)
+  config.train.checkpoint_every = 5  # epochs between checkpoints
+  config.train.keep = 2  # checkpoints kept
+
+  config.sampling = ml_collections.ConfigDict()
+  config.sampling.num_samples = 9  # N samples per scenario (paper)
+  config.sampling.sampler = "ddim"  # "ddim" or "ddpm"
+  config.sampling.steps = 10  # S DDIM steps (paper)
+  config.sampling.eta = 0.0  # DDIM noise
+  config.sampling.clip_x0 = 1.0  # clip predicted x0 to [-1, 1] (official sampler); 0 = off
+  config.sampling.guidance = ml_collections.ConfigDict()
+  config.sampling.guidance.w_min = 0.1  # paper
+  config.sampling.guidance.w_max_base = 1.0  # paper
+  config.sampling.guidance.t_c = 50.0  # paper
+  config.sampling.guidance.form = "paper"  # "paper" (1+w)c - w u, or "official" u + w (c - u)
+  config.sampling.guidance.direction = "paper"  # "paper" or "official" (reversed cosine)
+  config.sampling.hypotheses = ml_collections.ConfigDict()
+  config.sampling.hypotheses.c_max = 3  # C_max (paper)
+  config.sampling.hypotheses.scaling = "physical"  # "physical" (x/180, y/7) or "minmax"
+  config.sampling.hypotheses.x_scale = 180.0  # m, physical scaling
+  config.sampling.hypotheses.y_scale = 7.0  # m, physical scaling
+  config.sampling.hypotheses.pca_dim = 2  # r (paper)
+  config.sampling.hypotheses.reg_covar = 1e-2  # covariance floor in scaled PCA units
+  config.sampling.hypotheses.em_iters = 30  # EM iterations per C
+
+  if arg.tiny:
+    config.model.base_channels = 16
+    config.model.channel_mult = (1, 2)
+    config.model.attention_levels = (1,)
+    config.model.num_heads = 2
+    config.model.groups = 8
+    config.train.batch_size = 16
+    config.train.num_epochs = 1
+    config.train.learning_rate = 1e-3
+    config.train.checkpoint_every = 1
+    config.sampling.steps = 3
+  if arg.demo:
+    config.model.base_channels = 32
+    config.model.channel_mult = (1, 2, 2)
+    config.model.attention_levels = (2,)
+    config.model.groups = 8
+    config.train.batch_size = 128
+    config.train.num_epochs = 40
+    config.train.learning_rate = 1e-3
+    config.train.warmup_steps = 200
+    config.train.ema_decay = 0.999
+  if arg.paper or arg.reference:
+    config.train.num_epochs = 2000
+    config.train.checkpoint_every = 50
+  if arg.reference:
+    config.model.attention_levels = ()
+  return config

@@ -1,0 +1,202 @@
+"""Checkpoints of arbitrary pytrees of arrays; the only module that imports orbax.
+
+Wraps the orbax V1 training `Checkpointer`: step directories `<root>/<step>` are written
+to a temporary name and renamed when complete (orbax), each holding the state and a JSON
+metadata dict (the run's fingerprint). A step directory without the commit marker orbax
+writes last, or a leftover temporary directory, is never loaded. Every failure a user can
+cause (no checkpoint, other fingerprint, other shapes, garbled files) is raised as
+`CheckpointMismatchError` naming the directory and the mismatch.
+"""
+
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint.experimental.v1 as ocp
+
+# orbax writes this file into the temporary directory just before the final rename; a
+# step directory without it was not finished by orbax (or was tampered with).
+_COMMIT_MARKER = "commit_success.txt"
+_STATE = "state"  # the checkpointable (subdirectory) that holds the state pytree
+
+
+class CheckpointMismatchError(ValueError):
+  """A checkpoint is missing, unreadable, or does not belong to the requested run."""
+
+
+class _QuietOrbax(logging.Filter):
+  """Drops orbax's INFO/DEBUG records from the absl logger; warnings still pass."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.WARNING or "orbax" not in record.pathname
+
+
+logging.getLogger("absl").addFilter(_QuietOrbax())
+
+
+def to_json(value: Any, name: str = "fingerprint") -> Any:
+  """`value` as plain JSON data (tuples become lists); ValueError when it is not JSON-able."""
+  try:
+    return json.loads(json.dumps(value, sort_keys=True))
+  except (TypeError, ValueError) as e:
+    raise ValueError(f"{name} must be JSON-serialisable: {e}") from e
+
+
+def _flatten_json(value: Any, prefix: str = "") -> dict[str, Any]:
+  if isinstance(value, dict) and value:
+    out = {}
+    for k, v in value.items():
+      out.update(_flatten_json(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+  return {prefix: value}
+
+
+def check_metadata(saved: Any, expected: Any, where: str) -> None:
+  """Raises CheckpointMismatchError naming every key where `saved` and `expected` differ.
+
+  Args:
+    saved: the JSON metadata stored with a checkpoint.
+    expected: the JSON-able metadata of the current run (compared after a JSON round trip).
+    where: the checkpoint directory, for the message.
+  """
+  a, b = _flatten_json(saved), _flatten_json(to_json(expected))
+  diffs = [f"{k}: saved {a.get(k, '<absent>')!r}, expected {b.get(k, '<absent>')!r}"
+           for k in sorted(set(a) | set(b)) if a.get(k, KeyError) != b.get(k, KeyError)]
+  if diffs:
+    raise CheckpointMismatchError(
+        f"checkpoint {where} belongs to another run; differing keys: " + "; ".join(diffs))
+
+
+def _path_key(path: tuple[Any, ...]) -> str:
+  """A tree path as 'a/0/b', the same for a namedtuple field and orbax's dict key."""
+  parts = []
+  for p in path:
+    for attr in ("key", "idx", "name"):
+      if hasattr(p, attr):
+        parts.append(str(getattr(p, attr)))
+        break
+    else:
+      parts.append(str(p))
+  return "/".join(parts)
+
+
+def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
+  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+  return {_path_key(p): (tuple(x.shape), np.dtype(x.dtype).name) for p, x in leaves}
+
+
+def check_structure(saved_meta: Any, abstract_state: Any, where: str) -> None:
+  """Raises CheckpointMismatchError when leaves, shapes or dtypes differ, naming the leaf."""
+  saved, want = _leaf_specs(saved_meta), _leaf_specs(abstract_state)
+  problems = []
+  for k in sorted(set(saved) | set(want)):
+    if k not in saved:
+      problems.append(f"leaf {k!r} expected {want[k][0]} but absent from the checkpoint")
+    elif k not in want:
+      problems.append(f"leaf {k!r} {saved[k][0]} in the checkpoint but not expected")
+    elif saved[k] != want[k]:
+      problems.append(f"leaf {k!r}: checkpoint shape {saved[k][0]} {saved[k][1]}, "
+                      f"expected shape {want[k][0]} {want[k][1]}")
+  if problems:
+    raise CheckpointMismatchError(
+        f"checkpoint {where} does not match the expected state (other model size?): "
+        + "; ".join(problems[:8]) + (f"; ... {len(problems) - 8} more" if len(problems) > 8
+                                     else ""))
+
+
+def _complete_steps(root: Path) -> tuple[list[int], list[Path]]:
+  """(sorted steps with a commit marker, step directories without one)."""
+  done, partial = [], []
+  for p in root.iterdir() if root.is_dir() else ():
+    if p.is_dir() and p.name.isdigit():
+      (done if (p / _COMMIT_MARKER).is_file() else partial).append(p)
+  return sorted(int(p.name) for p in done), partial
+
+
+class Checkpoints:
+  """The complete checkpoints under one directory; saving keeps the latest `keep`.
+
+  Use as a context manager. With `writable=False` nothing on disk is created or removed;
+  with `writable=True` unfinished step and temporary directories are deleted on opening.
+  """
+
+  def __init__(self, root: str | os.PathLike, *, keep: int | None = None,
+               writable: bool = True):
+    self.root = Path(root)
+    self._steps, partial = _complete_steps(self.root)
+    self._ckptr = None
+    if not writable:
+      return
+    for p in partial:
+      shutil.rmtree(p)
+    policy = ocp.training.preservation_policies
+    try:
+      self._ckptr = ocp.training.Checkpointer(
+          self.root, preservation_policy=policy.LatestN(keep) if keep else None,
+          cleanup_tmp_directories=True)
+    except Exception as e:  # orbax reads every step's metadata here
+      raise CheckpointMismatchError(
+          f"checkpoint directory {self.root} holds an unreadable checkpoint "
+          f"({type(e).__name__}: {e})") from e
+
+  def __enter__(self) -> "Checkpoints":
+    return self
+
+  def __exit__(self, *exc) -> None:
+    if self._ckptr is not None:
+      self._ckptr.close()
+
+  @property
+  def latest_step(self) -> int | None:
+    """The highest complete step, or None when there is none."""
+    return self._steps[-1] if self._steps else None
+
+  def save(self, step: int, state: Any, metadata: Any) -> None:
+    """Writes `state` (a pytree of arrays) and JSON `metadata` as `step`; blocks until done."""
+    if self._ckptr is None:
+      raise ValueError(f"Checkpoints({self.root}) was opened read-only")
+    self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
+                     custom_metadata={"cvmdx": to_json(metadata, "checkpoint metadata")})
+    self._ckptr.wait()
+    self._steps = _complete_steps(self.root)[0]
+
+  def load(self, step: int, abstract_state: Any) -> tuple[Any, Any]:
+    """Restores `step` into the structure, shapes and shardings of `abstract_state`.
+
+    Args:
+      step: a complete step (see `latest_step`).
+      abstract_state: pytree of `jax.ShapeDtypeStruct` (with `sharding`) to restore into.
+
+    Returns:
+      (state, metadata): the restored pytree and the JSON metadata saved with it.
+
+    Raises:
+      CheckpointMismatchError: the step is missing, garbled, or its leaves differ from
+        `abstract_state` (the message names the leaf and both shapes).
+    """
+    where = self.root / str(step)
+    if step not in self._steps:
+      raise CheckpointMismatchError(f"no complete checkpoint {where}")
+    try:
+      meta = ocp.metadata(where, _STATE)
+      if meta.metadata is None:  # orbax returns None when it cannot parse the tree metadata
+        raise ValueError("no readable pytree metadata")
+    except Exception as e:
+      raise CheckpointMismatchError(
+          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})") from e
+    check_structure(meta.metadata, abstract_state, str(where))
+    try:
+      state = ocp.load(where, abstract_state, checkpointable_name=_STATE)
+      jax.block_until_ready(state)
+    except Exception as e:
+      raise CheckpointMismatchError(
+          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__})") from e
+    custom = meta.custom_metadata or {}
+    if "cvmdx" not in custom:
+      raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
+    return state, custom["cvmdx"]

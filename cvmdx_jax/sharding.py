@@ -1,0 +1,99 @@
+"""Data parallelism over all visible devices with `jax.sharding`.
+
+One 1-D mesh with axis "data": model state is replicated on every device, batches are
+split along their leading (example) dimension. Training and batched inference both use
+it; on CPU, `XLA_FLAGS=--xla_force_host_platform_device_count=N` (set before jax is
+imported) gives N devices to test with.
+"""
+
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+DATA_AXIS = "data"
+
+
+def data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+  """A 1-D mesh with axis "data" over `devices` (default: all visible devices)."""
+  devices = jax.devices() if devices is None else list(devices)
+  if not devices:
+    raise ValueError("data_mesh: no devices given")
+  return Mesh(np.asarray(devices), (DATA_AXIS,))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+  """The sharding that keeps a full copy of an array on every device of `mesh`."""
+  return NamedSharding(mesh, P())
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+  """The sharding that splits an array's leading dimension over the "data" axis."""
+  return NamedSharding(mesh, P(DATA_AXIS))
+
+
+def check_divisible(batch_size: int, mesh: Mesh, name: str = "batch_size") -> None:
+  """Raises ValueError unless `batch_size` splits evenly over the devices of `mesh`."""
+  n = mesh.shape[DATA_AXIS]
+  if batch_size <= 0 or batch_size % n:
+    raise ValueError(
+        f"{name}={batch_size} must be a positive multiple of the number of devices ({n}); "
+        f"choose {name} divisible by {n} or run on fewer devices")
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+  """Places every array of `tree` fully on every device of `mesh`."""
+  return jax.device_put(tree, replicated(mesh))
+
+
+def shard_batch(batch: Any, mesh: Mesh) -> Any:
+  """Splits every array of `batch` along its leading dimension over the "data" axis.
+
+  Args:
+    batch: a pytree of arrays, all with the same leading dimension B.
+    mesh: the mesh from `data_mesh`.
+
+  Returns:
+    The same pytree as global `jax.Array`s sharded `P("data")`.
+
+  Raises:
+    ValueError: B is not a multiple of the device count (pad first with `pad_batch`).
+  """
+  sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(batch)}
+  if len(sizes) != 1 or None in sizes:
+    raise ValueError(f"shard_batch: leaves need one common leading dimension, got {sizes}")
+  check_divisible(sizes.pop(), mesh, "batch leading dimension")
+  return jax.device_put(batch, batch_sharding(mesh))
+
+
+def pad_batch(batch: Any, multiple: int) -> tuple[Any, np.ndarray]:
+  """Pads the leading dimension of every array up to a multiple of `multiple` (host side).
+
+  Padding rows are copies of the first rows (cyclically), so they hold realistic, finite
+  values; the returned weight marks them 0 so that losses and statistics ignore them.
+
+  Args:
+    batch: a pytree of arrays, all with the same leading dimension B >= 1.
+    multiple: the padded size is the smallest multiple of it that is >= B.
+
+  Returns:
+    (padded, weight): `padded` has leading dimension B' = ceil(B / multiple) * multiple;
+    `weight` (B',) float32 is 1 for the B real rows and 0 for padding rows.
+  """
+  if multiple <= 0:
+    raise ValueError(f"pad_batch: multiple={multiple} must be positive")
+  sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(batch)}
+  if len(sizes) != 1 or None in sizes or 0 in sizes:
+    raise ValueError(f"pad_batch: leaves need one common, non-zero leading dimension, "
+                     f"got {sizes}")
+  n = sizes.pop()
+  pad = -n % multiple
+  weight = np.concatenate([np.ones(n, np.float32), np.zeros(pad, np.float32)])
+  if not pad:
+    return batch, weight
+  extra = np.arange(pad) % n
+  padded = jax.tree.map(lambda x: np.concatenate([np.asarray(x), np.asarray(x)[extra]]), batch)
+  return padded, weight

@@ -1,0 +1,179 @@
+"""Training of the motion diffusion model v_theta(x_t, t, q) on the shared loop.
+
+Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2);
+condition: the tokeniser's token q of each training scenario. Loss: the v-loss with
+conditioning dropout to the null token Q. Optimiser: AdamW with linear warm-up and
+cosine decay to `min_lr`, global-norm clipping; an EMA of the weights (with the usual
+warm-up of the decay, min(decay, (1 + step) / (10 + step))) is what inference uses.
+"""
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+
+from cvmdx_jax import normalization, tokens as tokens_lib
+from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.diffusion import GuidanceConfig, cosine_schedule, v_loss
+from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.models import unet1d
+from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.train import loop
+
+
+def unet_config(config: ml_collections.ConfigDict, num_tokens: int) -> unet1d.UNetConfig:
+  m = config.model
+  return unet1d.UNetConfig(num_tokens=num_tokens, base_channels=m.base_channels,
+                           channel_mult=tuple(m.channel_mult), num_res_blocks=m.num_res_blocks,
+                           emb_mult=m.emb_mult, attention_levels=tuple(m.attention_levels),
+                           num_heads=m.num_heads, groups=m.groups, dropout=m.dropout)
+
+
+def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
+  s = config.sampling
+  return SamplingConfig(
+      num_samples=s.num_samples, sampler=s.sampler, steps=s.steps, eta=s.eta,
+      clip_x0=s.clip_x0 if s.clip_x0 > 0 else None,
+      guidance=GuidanceConfig(**s.guidance.to_dict()),
+      hypotheses=HypothesisConfig(**s.hypotheses.to_dict()))
+
+
+def optimizer(config: ml_collections.ConfigDict, total_steps: int):
+  t = config.train
+  warmup = min(t.warmup_steps, max(total_steps // 10, 1))
+  lr = optax.warmup_cosine_decay_schedule(
+      init_value=t.learning_rate * 0.01, peak_value=t.learning_rate, warmup_steps=warmup,
+      decay_steps=max(total_steps, warmup + 1), end_value=t.min_lr)
+  return optax.chain(optax.clip_by_global_norm(t.grad_clip),
+                     optax.adamw(lr, weight_decay=t.weight_decay))
+
+
+def make_init_fn(cfg: unet1d.UNetConfig, tx):
+  """init_fn(key) -> {params, ema_params, opt_state, step}."""
+
+  def init_fn(key):
+    _, params = unet1d.init_unet(cfg, key)
+    return {"params": params, "ema_params": params, "opt_state": tx.init(params),
+            "step": jnp.zeros((), jnp.int32)}
+  return init_fn
+
+
+def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
+                 ema_decay: float, num_steps: int):
+  """The pure train step of the shared loop: v-loss, AdamW update, EMA."""
+  schedule = cosine_schedule(num_steps)
+
+  def step_fn(state, batch, key):
+    k_loss, k_drop = jax.random.split(key)
+
+    def loss_fn(params):
+      model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop)
+      return v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
+                    cond_drop_prob=cond_drop_prob, weight=batch["weight"])
+
+    loss, grads = jax.value_and_grad(loss_fn)(state["params"])
+    updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
+    params = optax.apply_updates(state["params"], updates)
+    step = state["step"] + 1
+    decay = jnp.minimum(ema_decay, (1.0 + step) / (10.0 + step))
+    ema = jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, state["ema_params"], params)
+    new = {"params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
+    return new, {"loss": loss, "grad_norm": optax.global_norm(grads)}
+
+  return step_fn
+
+
+def fingerprint(config, cfg: unet1d.UNetConfig, dataset_id: str, tokens_meta: dict) -> dict:
+  """What a checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
+  checkpoint = tokens_meta.get("checkpoint", {})
+  return {"model": dataclasses.asdict(cfg), "num_diffusion_steps": config.diffusion.num_steps,
+          "dataset_id": dataset_id,
+          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
+                        "step": checkpoint.get("step")}}
+
+
+def training_data(config) -> tuple[dict, int, str, dict]:
+  """(arrays {x0, q}, Q, dataset id, tokens metadata) of the training split."""
+  scenarios = dataset_lib.load_split(config.data_dir, "train")
+  dataset_id = dataset_lib.dataset_id(config.data_dir)
+  toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
+                                      dataset_id=dataset_id, num_scenarios=len(scenarios))
+  x0 = np.asarray(normalization.normalize_controls(scenarios.controls), np.float32)
+  return {"x0": x0, "q": toks.q.astype(np.int32)}, int(meta["codebook_size"]), dataset_id, meta
+
+
+def _init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
+  graphdef, _ = unet1d.init_unet(cfg, jax.random.key(0))
+  tx = optimizer(config, total_steps)
+  step_fn = make_step_fn(graphdef, cfg, tx, cond_drop_prob=config.diffusion.cond_drop_prob,
+                         ema_decay=config.train.ema_decay, num_steps=config.diffusion.num_steps)
+  return graphdef, make_init_fn(cfg, tx), step_fn
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
+  """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
+
+  `workdir` gets `config.json` (the run's config), `model.json` (U-Net config and
+  optimiser length, what `load_denoiser` needs), `metrics.jsonl` and `checkpoints/`.
+  """
+  data, num_tokens, dataset_id, tokens_meta = training_data(config)
+  cfg = unet_config(config, num_tokens)
+  total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
+  _, init_fn, step_fn = _init_and_step(config, cfg, total_steps)
+  workdir = Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  _write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
+  _write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
+                                       "total_steps": total_steps})
+  return loop.train(
+      workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
+      batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
+      fingerprint=fingerprint(config, cfg, dataset_id, tokens_meta),
+      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep, desc="diffusion")
+
+
+def _write_json(path: Path, value) -> None:
+  tmp = path.with_suffix(".tmp")
+  tmp.write_text(json.dumps(value, indent=2))
+  os.replace(tmp, path)
+
+
+@dataclasses.dataclass(frozen=True)
+class Denoiser:
+  """A trained denoiser for inference.
+
+  Attributes:
+    graphdef: U-Net graph definition.
+    params: the EMA parameters.
+    unet: `UNetConfig`.
+    config: the run's ConfigDict (sampling defaults, data and tokeniser dirs).
+    fingerprint: what the checkpoint was trained on (dataset id, tokeniser).
+  """
+
+  graphdef: object
+  params: dict
+  unet: unet1d.UNetConfig
+  config: ml_collections.ConfigDict
+  fingerprint: dict
+
+
+def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
+  """Restores the latest checkpoint of a `train_and_evaluate` run."""
+  workdir = Path(workdir)
+  try:
+    config = ml_collections.ConfigDict(json.loads((workdir / "config.json").read_text()))
+    model = json.loads((workdir / "model.json").read_text())
+  except (OSError, ValueError) as e:
+    raise FileNotFoundError(f"{workdir}: not a diffusion run directory ({e})") from e
+  cfg = unet1d.UNetConfig(**{k: tuple(v) if isinstance(v, list) else v
+                             for k, v in model["unet"].items()})
+  graphdef, init_fn, _ = _init_and_step(config, cfg, model["total_steps"])
+  state, saved = loop.load_latest(workdir, init_fn)
+  return Denoiser(graphdef=graphdef, params=state["ema_params"], unet=cfg, config=config,
+                  fingerprint=saved)

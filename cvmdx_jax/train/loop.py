@@ -1,0 +1,217 @@
+"""The shared data-parallel, resumable training loop of the tokeniser and the diffusion model.
+
+`train` runs `step_fn` over shuffled, padded global batches on a "data" mesh of all
+visible devices (state replicated, batches split), writes one JSON line of metrics per
+epoch to `<workdir>/metrics.jsonl` and an orbax checkpoint to `<workdir>/checkpoints`.
+Everything a step sees is a function of (seed, epoch, global step): epoch e uses the
+example order `np.random.default_rng([seed, e]).permutation(M)` and global step g the key
+`jax.random.fold_in(jax.random.key(seed), g)`, so a run that is killed and rerun with the
+same command ends bit-identical to one that never stopped.
+
+Epochs are counted from 1 in the metrics lines, in `epoch_end_fn` and as checkpoint
+steps: checkpoint `k` holds the state after k complete epochs.
+"""
+
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from cvmdx_jax import checkpointing, sharding
+from cvmdx_jax.checkpointing import CheckpointMismatchError
+
+State = Any
+Batch = dict[str, jax.Array]
+StepFn = Callable[[State, Batch, jax.Array], tuple[State, dict[str, jax.Array]]]
+
+# init_fn gets this fold of the seed's key; global steps (fold_in data) never reach it.
+_INIT_FOLD = 2**32 - 1
+_FINITE_METRICS = ("loss", "grad_norm")
+
+
+class TrainingError(RuntimeError):
+  """Training produced a non-finite loss or gradient norm."""
+
+
+def init_key(seed: int) -> jax.Array:
+  """The key `train` passes to `init_fn` for `seed`."""
+  return jax.random.fold_in(jax.random.key(seed), _INIT_FOLD)
+
+
+def _abstract_state(init_fn: Callable[[jax.Array], State], mesh) -> State:
+  """Shapes and dtypes of `init_fn`'s state, replicated on `mesh`; refuses typed PRNG keys."""
+  abstract = jax.eval_shape(init_fn, init_key(0))
+  for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]:
+    if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+      raise ValueError(f"init_fn state leaf {jax.tree_util.keystr(path)} is a PRNG key; keep "
+                       "keys out of the train state (train derives them from seed and step)")
+  rep = sharding.replicated(mesh)
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), abstract)
+
+
+def _check_data(data: Mapping[str, Any], batch_size: int) -> int:
+  if not data:
+    raise ValueError("train: data is empty")
+  if "weight" in data:
+    raise ValueError("train: data must not contain 'weight' (the loop adds it)")
+  sizes = {k: np.shape(v)[0] if np.ndim(v) else None for k, v in data.items()}
+  if len(set(sizes.values())) != 1 or None in sizes.values():
+    raise ValueError(f"train: data arrays need one common leading dimension, got {sizes}")
+  m = next(iter(sizes.values()))
+  if m == 0:
+    raise ValueError("train: data has no examples")
+  if not isinstance(batch_size, int) or batch_size <= 0:
+    raise ValueError(f"train: batch_size={batch_size!r} must be a positive int")
+  return m
+
+
+def _trim_metrics(path: Path, epochs_done: int) -> None:
+  """Keeps only complete lines of epochs <= epochs_done (a resumed run rewrites the rest)."""
+  if not path.exists():
+    return
+  kept = []
+  for line in path.read_text().splitlines():
+    try:
+      if json.loads(line)["epoch"] <= epochs_done:
+        kept.append(line)
+    except (ValueError, KeyError, TypeError):
+      continue
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text("".join(f"{line}\n" for line in kept))
+  os.replace(tmp, path)
+
+
+def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int,
+                   first_step: int) -> dict[str, float]:
+  """Weighted means of per-step metrics; TrainingError at the first non-finite loss/grad."""
+  for i, m in enumerate(metrics):
+    for name in _FINITE_METRICS:
+      if name in m and not np.isfinite(m[name]):
+        raise TrainingError(f"non-finite {name}={float(m[name])} at global step "
+                            f"{first_step + i} (epoch {epoch}); last good checkpoint kept")
+  n = weights.sum(axis=1)
+  return {k: float(np.sum(n * np.array([m[k] for m in metrics], np.float64)) / n.sum())
+          for k in metrics[0]}
+
+
+def _to_json_value(value: Any) -> Any:
+  return np.asarray(jax.device_get(value)).tolist()
+
+
+def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], step_fn: StepFn,
+          data: Mapping[str, np.ndarray], batch_size: int, num_epochs: int, seed: int,
+          fingerprint: Any, checkpoint_every: int = 1, keep: int = 2,
+          epoch_end_fn: Callable[[State, int], dict[str, Any]] | None = None,
+          desc: str = "train") -> State:
+  """Trains (or resumes, or returns a finished run's final state) data-parallel.
+
+  Args:
+    workdir: run directory; holds `checkpoints/` and `metrics.jsonl`.
+    init_fn: `init_fn(key) -> state`, a pytree of arrays (no PRNG keys).
+    step_fn: pure `step_fn(state, batch, key) -> (state, metrics)`; `batch` holds the
+      arrays of `data` for `batch_size` examples plus `weight` (batch_size,) float32 (0 on
+      padding rows); `metrics` is a dict of scalars with "loss" (and maybe "grad_norm").
+    data: dict of numpy arrays with a common leading dimension M (the training set).
+    batch_size: global batch size; must be a multiple of the device count.
+    num_epochs: total epochs of the run (a rerun with more epochs continues it).
+    seed: fixes the initial state, the example order and every step key.
+    fingerprint: JSON-able identity of the run (model config, dataset id, ...) stored with
+      each checkpoint; resuming with another raises CheckpointMismatchError.
+    checkpoint_every: save after every this many epochs (and after the last).
+    keep: number of latest checkpoints kept.
+    epoch_end_fn: `epoch_end_fn(state, epoch) -> dict` of extra JSON-able values logged.
+    desc: progress bar label.
+
+  Returns:
+    The state after `num_epochs` epochs, replicated on the mesh.
+
+  Raises:
+    ValueError: bad arguments (e.g. batch_size not divisible by the device count).
+    CheckpointMismatchError: the workdir's checkpoint belongs to another run or is broken.
+    TrainingError: a non-finite loss or grad_norm (names the global step and epoch).
+  """
+  m = _check_data(data, batch_size)
+  if checkpoint_every < 1 or keep < 1:
+    raise ValueError(f"train: checkpoint_every={checkpoint_every} and keep={keep} must be >= 1")
+  mesh = sharding.data_mesh()
+  sharding.check_divisible(batch_size, mesh)
+  abstract = _abstract_state(init_fn, mesh)
+  run_meta = {"fingerprint": checkpointing.to_json(fingerprint),
+              "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m}}
+  workdir = Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  steps_per_epoch = -(-m // batch_size)
+  root_key = jax.random.key(seed)
+
+  def keyed_step(state, batch, global_step):
+    return step_fn(state, batch, jax.random.fold_in(root_key, global_step))
+
+  step = jax.jit(keyed_step, donate_argnums=0)
+  data = {k: np.asarray(v) for k, v in data.items()}
+  with checkpointing.Checkpoints(workdir / "checkpoints", keep=keep) as ckpts:
+    done = ckpts.latest_step or 0
+    if done:
+      state, saved = ckpts.load(done, abstract)
+      checkpointing.check_metadata(saved, run_meta, str(ckpts.root / str(done)))
+    else:
+      state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
+    _trim_metrics(workdir / "metrics.jsonl", done)
+    with tqdm(total=num_epochs * steps_per_epoch, initial=min(done, num_epochs) * steps_per_epoch,
+              desc=desc, unit="step", dynamic_ncols=True) as bar:
+      for epoch in range(done, num_epochs):
+        start, first_step = time.perf_counter(), epoch * steps_per_epoch
+        order = np.random.default_rng([seed, epoch]).permutation(m)
+        order, weight = sharding.pad_batch(order, batch_size)
+        order = order.reshape(steps_per_epoch, batch_size)
+        weight = weight.reshape(steps_per_epoch, batch_size)
+        metrics = []
+        for i in range(steps_per_epoch):
+          batch = {k: v[order[i]] for k, v in data.items()}
+          batch["weight"] = weight[i]
+          state, step_metrics = step(state, sharding.shard_batch(batch, mesh), first_step + i)
+          metrics.append(step_metrics)
+          bar.update()
+        summary = _epoch_summary(jax.device_get(metrics), weight, epoch + 1, first_step)
+        if epoch_end_fn is not None:
+          summary.update({k: _to_json_value(v) for k, v in epoch_end_fn(state, epoch + 1).items()})
+        bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
+        line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
+                "seconds": round(time.perf_counter() - start, 4), **summary}
+        with open(workdir / "metrics.jsonl", "a") as f:
+          f.write(json.dumps(line) + "\n")
+        if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
+          ckpts.save(epoch + 1, state, run_meta)
+  return state
+
+
+def load_latest(workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State],
+                fingerprint: Any = None) -> tuple[State, Any]:
+  """Restores the latest complete checkpoint of a `train` run, e.g. for inference.
+
+  Args:
+    workdir: the `train` workdir.
+    init_fn: the run's `init_fn`; only its output structure is used (`jax.eval_shape`).
+    fingerprint: when given, must equal the saved fingerprint.
+
+  Returns:
+    (state, saved_fingerprint), the state replicated over all visible devices.
+
+  Raises:
+    CheckpointMismatchError: no complete checkpoint, another fingerprint, other shapes, or
+      a corrupt checkpoint.
+  """
+  root = Path(workdir) / "checkpoints"
+  ckpts = checkpointing.Checkpoints(root, writable=False)
+  if ckpts.latest_step is None:
+    raise CheckpointMismatchError(f"no complete checkpoint under {root}")
+  state, saved = ckpts.load(ckpts.latest_step, _abstract_state(init_fn, sharding.data_mesh()))
+  if fingerprint is not None:
+    checkpointing.check_metadata(saved.get("fingerprint"), fingerprint,
+                                 str(root / str(ckpts.latest_step)))
+  return state, saved.get("fingerprint")

@@ -1,0 +1,40 @@
+"""Evaluates trained cVMDx runs like the paper and writes metrics.json, tables, figures.
+
+  PYTHONPATH=. python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
+      --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
+      --workdir=runs/demo/eval
+"""
+
+import sys
+
+from absl import app, flags
+
+from cvmdx_jax import report
+
+_TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
+_DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
+_DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
+_WORKDIR = flags.DEFINE_string("workdir", None, "Output directory of the report.")
+_SPLIT = flags.DEFINE_string("split", "test", "Split to evaluate.")
+_SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.")
+_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 = all).")
+_DDPM = flags.DEFINE_integer("ddpm_scenarios", 300,
+                             "Scenarios for the single-DDPM-sample baseline (0 = skip).")
+flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  try:
+    report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
+               data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
+               seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value)
+  except (ValueError, FileNotFoundError) as e:
+    print(f"evaluate: error: {e}", file=sys.stderr)
+    sys.exit(2)
+  print(open(f"{_WORKDIR.value}/results.md").read())
+
+
+if __name__ == "__main__":
+  app.run(main)

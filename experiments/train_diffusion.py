@@ -1,0 +1,28 @@
+"""Trains the motion diffusion model on (normalised controls, token q).
+
+  PYTHONPATH=. python experiments/train_diffusion.py --config=configs/diffusion.py:demo \\
+      --workdir=runs/demo/diffusion --config.data_dir=... --config.tokenizer_dir=...
+Rerunning the same command resumes from the last complete checkpoint.
+"""
+
+from absl import app, flags, logging
+import jax
+from ml_collections import config_flags
+
+from cvmdx_jax.train import diffusion
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
+                                          lock_config=True)
+_WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
+flags.mark_flags_as_required(["config", "workdir"])
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  logging.info("JAX devices: %s", jax.devices())
+  diffusion.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+
+
+if __name__ == "__main__":
+  app.run(main)

@@ -1,0 +1,80 @@
+"""Tests of cvmdx_jax.sharding: padding, divisibility, batch placement on 1 and 2 devices."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from cvmdx_jax import sharding
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_pad_batch_pads_cyclically_and_marks_padding():
+  batch = {"a": np.arange(5), "b": np.arange(10.0).reshape(5, 2)}
+  padded, weight = sharding.pad_batch(batch, 4)
+  np.testing.assert_array_equal(padded["a"], [0, 1, 2, 3, 4, 0, 1, 2])
+  np.testing.assert_array_equal(padded["b"][5:], batch["b"][:3])
+  np.testing.assert_array_equal(weight, [1, 1, 1, 1, 1, 0, 0, 0])
+  assert weight.dtype == np.float32
+
+
+def test_pad_batch_without_padding_and_with_fewer_rows_than_padding():
+  batch = {"a": np.arange(4)}
+  same, weight = sharding.pad_batch(batch, 2)
+  np.testing.assert_array_equal(same["a"], batch["a"])
+  np.testing.assert_array_equal(weight, np.ones(4))
+  padded, weight = sharding.pad_batch(np.array([7, 9]), 5)
+  np.testing.assert_array_equal(padded, [7, 9, 7, 9, 7])
+  assert weight.sum() == 2
+
+
+@pytest.mark.parametrize("batch,multiple", [({"a": np.zeros(3), "b": np.zeros(2)}, 2),
+                                            ({"a": np.zeros(0)}, 2), ({"a": np.zeros(3)}, 0)])
+def test_pad_batch_rejects_bad_input(batch, multiple):
+  with pytest.raises(ValueError, match="pad_batch"):
+    sharding.pad_batch(batch, multiple)
+
+
+def test_single_device_mesh_places_batch_and_state():
+  mesh = sharding.data_mesh()
+  assert mesh.axis_names == ("data",) and mesh.size == jax.device_count()
+  batch = sharding.shard_batch({"x": np.ones((4, 3))}, mesh)
+  assert batch["x"].sharding == sharding.batch_sharding(mesh)
+  state = sharding.replicate({"w": np.zeros(2)}, mesh)
+  assert state["w"].sharding.is_fully_replicated
+  with pytest.raises(ValueError, match="batch_size=0"):
+    sharding.check_divisible(0, mesh)
+
+
+def test_two_devices_split_the_batch_and_refuse_odd_sizes():
+  script = textwrap.dedent("""
+      import jax, numpy as np
+      from cvmdx_jax import sharding
+      mesh = sharding.data_mesh()
+      assert mesh.size == 2, mesh
+      x = np.arange(12.0).reshape(6, 2)
+      padded, w = sharding.pad_batch({"x": x[:5]}, mesh.size)
+      batch = sharding.shard_batch({"x": padded["x"], "w": w}, mesh)
+      shapes = sorted(s.data.shape for s in batch["x"].addressable_shards)
+      assert shapes == [(3, 2), (3, 2)], shapes
+      total = jax.jit(lambda b: (b["x"].sum(-1) * b["w"]).sum())(batch)
+      np.testing.assert_allclose(total, x[:5].sum(), rtol=1e-6)
+      try:
+        sharding.shard_batch({"x": x[:5]}, mesh)
+      except ValueError as e:
+        assert "multiple of the number of devices (2)" in str(e), e
+      else:
+        raise AssertionError("odd batch accepted")
+      print("OK")
+  """)
+  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+             JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+  out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
+                       timeout=120, cwd=REPO)
+  assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
