@@ -1,0 +1,115 @@
+"""The scenario tokeniser: encoder E, (C)VQ codebook, decoder D, maneuver classifier.
+
+Loss (paper, "Context Conditioning via CVQ-VAE"):
+    L = ||xi - D(z_q)||^2 + ||sg[E(xi)] - z_q||^2 + beta ||E(xi) - sg[z_q]||^2
+        + lambda CE(softmax(f_cl(z_q)), s),
+with the reconstruction error over the normalised features of present vehicles only
+(mean over the mask), f_cl a linear layer on the straight-through z_q, and every term
+a weighted mean over the batch rows (padding rows have weight 0).
+"""
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+
+from cvmdx_jax import constants, scenario_norm
+from cvmdx_jax.models import quantizer as quantizer_lib
+from cvmdx_jax.models.scenario_encoder import (EncoderConfig, ScenarioDecoder,
+                                               ScenarioEncoder)
+
+
+@dataclasses.dataclass(frozen=True)
+class TokenizerConfig:
+  """Static settings of the tokeniser.
+
+  Attributes:
+    encoder: sizes of E and D.
+    quantizer: codebook settings; its latent_dim must equal encoder.latent_dim.
+    cls_weight: lambda, weight of the maneuver cross-entropy.
+  """
+
+  encoder: EncoderConfig = EncoderConfig()
+  quantizer: quantizer_lib.QuantizerConfig = quantizer_lib.QuantizerConfig()
+  cls_weight: float = 1.0
+
+  def __post_init__(self):
+    if self.encoder.latent_dim != self.quantizer.latent_dim:
+      raise ValueError(f"encoder latent_dim {self.encoder.latent_dim} != quantizer "
+                       f"latent_dim {self.quantizer.latent_dim}")
+
+
+class Output(NamedTuple):
+  """Forward pass on B scenarios.
+
+  Attributes:
+    z_hat: (B, D) encoder latents.
+    quantized: the quantiser output (straight-through z_q, tokens, VQ losses).
+    reconstruction: (B, 9, 75, 4) normalised xi reconstructed from z_q.
+    logits: (B, 3) maneuver logits from z_q.
+  """
+
+  z_hat: jax.Array
+  quantized: quantizer_lib.Quantized
+  reconstruction: jax.Array
+  logits: jax.Array
+
+
+class Tokenizer(nnx.Module):
+  """E + codebook + D + linear maneuver classifier."""
+
+  def __init__(self, config: TokenizerConfig, *, rngs: nnx.Rngs):
+    self.encoder = ScenarioEncoder(config.encoder, rngs=rngs)
+    self.decoder = ScenarioDecoder(config.encoder, rngs=rngs)
+    self.codebook = nnx.Param(quantizer_lib.init_codebook(rngs.params(), config.quantizer))
+    self.classifier = nnx.Linear(config.encoder.latent_dim, constants.NUM_CLASSES, rngs=rngs)
+
+  def encode(self, xi: jax.Array, mask: jax.Array) -> jax.Array:
+    """(B, 9, 75, 4) physical xi, (B, 9, 75) mask -> (B, D) z_hat."""
+    return self.encoder(scenario_norm.encoder_input(xi, mask))
+
+  def __call__(self, xi: jax.Array, mask: jax.Array) -> Output:
+    z_hat = self.encode(xi, mask)
+    quantized = quantizer_lib.quantize(self.codebook[...], z_hat)
+    return Output(z_hat, quantized, self.decoder(quantized.z_q),
+                  self.classifier(quantized.z_q))
+
+
+def weighted_mean(values: jax.Array, weight: jax.Array) -> jax.Array:
+  """(B,) per-row values, (B,) weights -> scalar weighted mean (0 for all-zero weights)."""
+  return jnp.sum(values * weight) / jnp.maximum(jnp.sum(weight), 1e-12)
+
+
+def loss_fn(model: Tokenizer, batch: dict, config: TokenizerConfig):
+  """Tokeniser loss on a batch.
+
+  Args:
+    model: the tokeniser.
+    batch: "xi" (B, 9, 75, 4), "mask" (B, 9, 75), "label" (B,) int, "weight" (B,).
+    config: static settings (beta, lambda).
+
+  Returns:
+    (loss scalar, (metrics dict of scalars, Output)).
+  """
+  out = model(batch["xi"], batch["mask"])
+  weight = batch["weight"].astype(jnp.float32)
+  mask = batch["mask"].astype(jnp.float32)[..., None]
+  target = scenario_norm.normalize_xi(batch["xi"], batch["mask"])
+  sq_err = jnp.sum(mask * (out.reconstruction - target) ** 2, axis=(1, 2, 3))
+  recon = sq_err / jnp.maximum(jnp.sum(mask, axis=(1, 2, 3)) * constants.NUM_FEATURES, 1.0)
+  ce = optax.softmax_cross_entropy_with_integer_labels(out.logits, batch["label"])
+  correct = (jnp.argmax(out.logits, -1) == batch["label"]).astype(jnp.float32)
+  metrics = {
+      "reconstruction": weighted_mean(recon, weight),
+      "codebook": weighted_mean(out.quantized.codebook_loss, weight),
+      "commitment": weighted_mean(out.quantized.commitment_loss, weight),
+      "classification": weighted_mean(ce, weight),
+      "accuracy": weighted_mean(correct, weight),
+  }
+  loss = (metrics["reconstruction"] + metrics["codebook"]
+          + config.quantizer.beta * metrics["commitment"]
+          + config.cls_weight * metrics["classification"])
+  return loss, (metrics, out)

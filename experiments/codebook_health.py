@@ -1,0 +1,65 @@
+"""Codebook health: entries in use and perplexity of CVQ vs VQ for several codebook sizes.
+
+  PYTHONPATH=. .venv/bin/python experiments/codebook_health.py \
+      --config=configs/tokenizer.py:demo --workdir=runs/codebook_health
+
+Trains one tokeniser per (Q, quantizer) with the same config, data, seed and number of
+steps (only `codebook_size` and `quantizer` change) into <workdir>/<quantizer>_q<Q>, and
+writes a Markdown table of entries in use (training scenarios per entry >= 1), their
+share of Q, perplexity of the token distribution over the training split, the
+maneuver accuracy on the training split and the number of steps to
+<workdir>/codebook_health.md. Finished runs are
+reused (each run resumes from its own workdir).
+"""
+
+import json
+import os
+from pathlib import Path
+
+from absl import app, flags, logging
+from ml_collections import config_flags
+
+from cvmdx_jax import tokens
+from cvmdx_jax.models import quantizer as quantizer_lib
+from cvmdx_jax.train import tokenizer
+
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:demo.", lock_config=True)
+_WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (one run per row).")
+_SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"],
+                           "Codebook sizes Q to compare.")
+flags.mark_flags_as_required(["config", "workdir"])
+
+
+def _row(run_dir: Path, q: int, kind: str) -> str:
+  train, _ = tokens.load_tokens(tokens.tokens_path(run_dir, "train"))
+  in_use, perplexity = quantizer_lib.codebook_stats(train.q, q)
+  last = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[-1])
+  return (f"| {q} | {kind} | {int(in_use)} | {100 * int(in_use) / q:.0f} % | "
+          f"{float(perplexity):.1f} | {last['train_accuracy']:.3f} | {last['step']} |")
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"Too many command-line arguments: {argv[1:]}")
+  workdir = Path(_WORKDIR.value)
+  config = _CONFIG.value
+  rows = ["| Q | quantizer | entries in use | share of Q | perplexity | train acc. | steps |",
+          "|---|---|---|---|---|---|---|"]
+  for q in (int(s) for s in _SIZES.value):
+    for kind in ("cvq", "vq"):
+      run = config.copy_and_resolve_references()
+      run.codebook_size, run.quantizer = q, kind
+      run_dir = workdir / f"{kind}_q{q}"
+      tokenizer.train_and_evaluate(run, run_dir)
+      rows.append(_row(run_dir, q, kind))
+      logging.info("%s", rows[-1])
+  table = "\n".join(rows) + "\n"
+  print(table)
+  tmp = workdir / ".codebook_health.md.tmp"
+  tmp.write_text(table)
+  os.replace(tmp, workdir / "codebook_health.md")
+
+
+if __name__ == "__main__":
+  app.run(main)

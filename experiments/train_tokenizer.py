@@ -1,0 +1,31 @@
+"""Trains the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head) and writes its tokens.
+
+  PYTHONPATH=. .venv/bin/python experiments/train_tokenizer.py \
+      --config=configs/tokenizer.py:demo --workdir=runs/tokenizer
+Rerunning the same command resumes from the latest checkpoint in --workdir. The library
+does the work (cvmdx_jax.train.tokenizer); this file only parses flags.
+"""
+
+from absl import app, flags, logging
+from ml_collections import config_flags
+
+import jax
+
+from cvmdx_jax.train import tokenizer
+
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:tiny.", lock_config=True)
+_WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics, tokens).")
+flags.mark_flags_as_required(["config", "workdir"])
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"Too many command-line arguments: {argv[1:]}")
+  logging.info("devices: %s", jax.devices())
+  tokenizer.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+  logging.info("tokens written to %s/tokens", _WORKDIR.value)
+
+
+if __name__ == "__main__":
+  app.run(main)
