@@ -29,6 +29,7 @@ test-slow: $(STAMP)
 
 benchmark: $(STAMP)
 	$(PY) experiments/benchmark_sampling.py
+	$(PY) experiments/benchmark.py
 
 clean:
 	rm -rf $(VENV) runs

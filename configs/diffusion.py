@@ -87,11 +87,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.sampling.steps = 3
   if arg.demo:
     config.model.base_channels = 32
-    config.model.channel_mult = (1, 2, 2)
-    config.model.attention_levels = (2,)
+    config.model.channel_mult = (1, 2, 2, 2)
+    config.model.attention_levels = (3,)
     config.model.groups = 8
     config.train.batch_size = 128
-    config.train.num_epochs = 40
+    config.train.num_epochs = 60
     config.train.learning_rate = 1e-3
     config.train.warmup_steps = 200
     config.train.ema_decay = 0.999

@@ -127,7 +127,7 @@ class Checkpoints:
 
   def __init__(self, root: str | os.PathLike, *, keep: int | None = None,
                writable: bool = True):
-    self.root = Path(root)
+    self.root = Path(root).absolute()  # orbax requires absolute paths
     self._steps, partial = _complete_steps(self.root)
     self._ckptr = None
     if not writable:

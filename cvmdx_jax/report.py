@@ -8,23 +8,15 @@ before anything is written, and each file is written atomically.
 """
 
 import dataclasses
-import json
-import os
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import constants, evaluation, figures, tokens as tokens_lib
+from cvmdx_jax import atomic, constants, evaluation, figures, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.predict import Predictor
-
-
-def _atomic_write(path: Path, text: str) -> None:
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(text)
-  os.replace(tmp, path)
 
 
 def _balanced_subset(labels, n: int, seed: int) -> np.ndarray:
@@ -93,6 +85,6 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q)))}
-  _atomic_write(workdir / "metrics.json", json.dumps({**results, "_meta": meta}, indent=2))
-  _atomic_write(workdir / "results.md", evaluation.markdown_tables(results))
+  atomic.write_json(workdir / "metrics.json", {**results, "_meta": meta})
+  atomic.write_text(workdir / "results.md", evaluation.markdown_tables(results))
   return results

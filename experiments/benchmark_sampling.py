@@ -1,6 +1,9 @@
 """Benchmarks of the inference path, printed from one run, section by section.
 
 Sections (`--sections`, in this order):
+  samplers: DDPM (T = 1000) vs DDIM (S = 10) wall time for the same batch (9
+    guided samples of one scenario, i.e. 18 sequences per U-Net call) with the
+    default (reference-size) U-Net; the ideal ratio is 100x.
   hypotheses: batched JAX `fit_hypotheses` (jitted, warmed up) vs the
     scikit-learn per-scenario loop (`multimodal.reference`) on sets of sampled
     trajectories with 1-3 known modes: wall times, speed-up, share of
@@ -22,11 +25,14 @@ import jax.numpy as jnp
 import numpy as np
 from sklearn import exceptions
 
+from cvmdx_jax import diffusion
+from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import fit_hypotheses
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import reference
 
-_SECTIONS = flags.DEFINE_list("sections", ["hypotheses", "recovery"], "Sections to run.")
+_SECTIONS = flags.DEFINE_list("sections", ["samplers", "hypotheses", "recovery"],
+                              "Sections to run.")
 _NUM_SCENARIOS = flags.DEFINE_integer("num_scenarios", 1000, "Scenarios per benchmark.")
 _NUM_SAMPLES = flags.DEFINE_integer("num_samples", 9, "Sampled trajectories per scenario.")
 _SEED = flags.DEFINE_integer("seed", 0, "Seed of the synthetic mode sets.")
@@ -107,10 +113,35 @@ def recovery_table(num_sets=1000, seed=1, grid=RECOVERY_GRID):
   return rows
 
 
+def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
+  """DDPM(1000) vs DDIM(10) with the default U-Net, guided, for one batch."""
+  config = unet1d.UNetConfig()
+  graphdef, params = unet1d.init_unet(config, jax.random.key(seed))
+  schedule = diffusion.cosine_schedule()
+  model = lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)
+  v_fn = diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), config.null_token,
+                               jnp.full(num_samples, 5.0), schedule)
+  shape = (num_samples, 125, 2)
+  ddim = jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule, steps=10))
+  ddpm = jax.jit(lambda k: diffusion.ddpm_sample(v_fn, k, shape, schedule))
+  times = {}
+  for name, fn in (("ddim", ddim), ("ddpm", ddpm)):
+    fn(jax.random.key(0)).block_until_ready()
+    start = time.perf_counter()
+    fn(jax.random.key(1)).block_until_ready()
+    times[name] = time.perf_counter() - start
+  ratio = times["ddpm"] / times["ddim"]
+  print(f"samplers: {unet1d.count_params(params) / 1e6:.1f} M-parameter U-Net, {num_samples} "
+        f"guided samples: DDPM(1000) {times['ddpm']:.2f} s, DDIM(10) {times['ddim']:.3f} s, "
+        f"ratio {ratio:.1f}x (ideal 100x)")
+  return {**times, "ratio": ratio}
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   sections = {
+      "samplers": lambda: benchmark_samplers(_NUM_SAMPLES.value, _SEED.value),
       "hypotheses": lambda: benchmark_hypotheses(
           _NUM_SCENARIOS.value, _NUM_SAMPLES.value, _SEED.value),
       "recovery": lambda: recovery_table(_NUM_SCENARIOS.value, _SEED.value + 1),

@@ -13,13 +13,12 @@ reused (each run resumes from its own workdir).
 """
 
 import json
-import os
 from pathlib import Path
 
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import tokens
+from cvmdx_jax import atomic, tokens
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.train import tokenizer
 
@@ -56,9 +55,7 @@ def main(argv):
       logging.info("%s", rows[-1])
   table = "\n".join(rows) + "\n"
   print(table)
-  tmp = workdir / ".codebook_health.md.tmp"
-  tmp.write_text(table)
-  os.replace(tmp, workdir / "codebook_health.md")
+  atomic.write_text(workdir / "codebook_health.md", table)
 
 
 if __name__ == "__main__":

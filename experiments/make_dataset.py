@@ -10,7 +10,6 @@ non-zero with a message naming file, row and column on bad input.
 """
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 from absl import app, flags
 from ml_collections import config_flags
 
+from cvmdx_jax import atomic
 from cvmdx_jax.data import dataset, summary
 from cvmdx_jax.data.errors import DataError
 
@@ -38,10 +38,7 @@ def main(argv):
             "seconds": round(time.time() - start, 1), "splits": summary.summarize(splits)}
   text = json.dumps(result, indent=1)
   print(text)
-  path = Path(_DATA_DIR.value) / "summary.json"
-  tmp = path.with_name(".summary.json.tmp")
-  tmp.write_text(text + "\n")
-  os.replace(tmp, path)
+  atomic.write_text(Path(_DATA_DIR.value) / "summary.json", text + "\n")
 
 
 if __name__ == "__main__":

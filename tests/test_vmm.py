@@ -5,7 +5,6 @@ import math
 
 import jax
 import numpy as np
-import pytest
 import scipy.io
 
 from cvmdx_jax import vmm

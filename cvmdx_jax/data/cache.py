@@ -9,22 +9,16 @@ other settings or sources is never taken for a valid one.
 import hashlib
 import io
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from cvmdx_jax import atomic
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 
 FORMAT_VERSION = 1
 METADATA = "metadata.json"
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-  tmp.write_bytes(data)
-  os.replace(tmp, path)
 
 
 def write(cache_dir, splits: dict, settings: dict, sources: list) -> dict:
@@ -36,12 +30,12 @@ def write(cache_dir, splits: dict, settings: dict, sources: list) -> dict:
     buffer = io.BytesIO()
     np.savez(buffer, **scen.as_dict())
     data = buffer.getvalue()
-    _atomic_write(cache_dir / f"{name}.npz", data)
+    atomic.write_bytes(cache_dir / f"{name}.npz", data)
     entries[name] = {"file": f"{name}.npz", "bytes": len(data),
                      "sha256": hashlib.sha256(data).hexdigest(), "count": len(scen)}
   metadata = {"format_version": FORMAT_VERSION, "settings": settings,
               "sources": [list(s) for s in sources], "splits": entries}
-  _atomic_write(cache_dir / METADATA, json.dumps(metadata, indent=1, sort_keys=True).encode())
+  atomic.write_bytes(cache_dir / METADATA, json.dumps(metadata, indent=1, sort_keys=True).encode())
   return metadata
 
 

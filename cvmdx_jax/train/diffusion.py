@@ -18,7 +18,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import normalization, tokens as tokens_lib
+from cvmdx_jax import atomic, normalization, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import GuidanceConfig, cosine_schedule, v_loss
 from cvmdx_jax.inference import SamplingConfig
@@ -84,7 +84,7 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
     decay = jnp.minimum(ema_decay, (1.0 + step) / (10.0 + step))
     ema = jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, state["ema_params"], params)
     new = {"params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
-    return new, {"loss": loss, "grad_norm": optax.global_norm(grads)}
+    return new, {"loss": loss, "grad_norm": optax.tree.norm(grads)}
 
   return step_fn
 
@@ -108,7 +108,8 @@ def training_data(config) -> tuple[dict, int, str, dict]:
   return {"x0": x0, "q": toks.q.astype(np.int32)}, int(meta["codebook_size"]), dataset_id, meta
 
 
-def _init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
+def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
+  """(graphdef, init_fn, step_fn) of a run with `total_steps` optimiser steps."""
   graphdef, _ = unet1d.init_unet(cfg, jax.random.key(0))
   tx = optimizer(config, total_steps)
   step_fn = make_step_fn(graphdef, cfg, tx, cond_drop_prob=config.diffusion.cond_drop_prob,
@@ -125,23 +126,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
   cfg = unet_config(config, num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
-  _, init_fn, step_fn = _init_and_step(config, cfg, total_steps)
+  _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  _write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
-  _write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
+  atomic.write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
+  atomic.write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
                                        "total_steps": total_steps})
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
       fingerprint=fingerprint(config, cfg, dataset_id, tokens_meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep, desc="diffusion")
-
-
-def _write_json(path: Path, value) -> None:
-  tmp = path.with_suffix(".tmp")
-  tmp.write_text(json.dumps(value, indent=2))
-  os.replace(tmp, path)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,7 +168,7 @@ def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
     raise FileNotFoundError(f"{workdir}: not a diffusion run directory ({e})") from e
   cfg = unet1d.UNetConfig(**{k: tuple(v) if isinstance(v, list) else v
                              for k, v in model["unet"].items()})
-  graphdef, init_fn, _ = _init_and_step(config, cfg, model["total_steps"])
+  graphdef, init_fn, _ = init_and_step(config, cfg, model["total_steps"])
   state, saved = loop.load_latest(workdir, init_fn)
   return Denoiser(graphdef=graphdef, params=state["ema_params"], unet=cfg, config=config,
                   fingerprint=saved)

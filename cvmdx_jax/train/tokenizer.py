@@ -24,7 +24,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from cvmdx_jax import checkpointing, scenario_norm, tokens as tokens_lib, uncertainty
+from cvmdx_jax import atomic, checkpointing, scenario_norm, tokens as tokens_lib, uncertainty
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.models import quantizer as quantizer_lib
@@ -188,9 +188,7 @@ def _claim_workdir(workdir: Path, run: dict) -> None:
     checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], run["fingerprint"],
                                  str(workdir))
   workdir.mkdir(parents=True, exist_ok=True)
-  tmp = path.with_name(f".{path.name}.tmp")
-  tmp.write_text(json.dumps(run, indent=1, sort_keys=True))
-  os.replace(tmp, path)
+  atomic.write_json(path, run, indent=1, sort_keys=True)
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike, *,

@@ -88,3 +88,19 @@ def highd_dir(tmp_path) -> Path:
   for recording_id in (1, 2):
     write_recording(tmp_path, recording_id)
   return tmp_path
+
+
+@pytest.fixture
+def highd_config(highd_dir):
+  """A factory of fresh `configs/dataset.py:tiny` configs reading `highd_dir`
+  (recording 1 train, 2 test, two lane-change offsets)."""
+  from configs import dataset as dataset_config
+
+  def make():
+    config = dataset_config.get_config("tiny")
+    config.source = "highd"
+    config.highd_dir = str(highd_dir)
+    config.splits.train, config.splits.test = (1,), (2,)
+    config.extraction.lc_offsets_s = (0.5, 1.0)
+    return config
+  return make

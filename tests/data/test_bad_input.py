@@ -4,10 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import ml_collections
 import pytest
 
-from configs import dataset as dataset_config
 from cvmdx_jax.data import dataset, highd
 from cvmdx_jax.data.errors import DataError
 
@@ -85,21 +83,12 @@ def test_empty_selection(highd_dir):
     highd.load_scenarios(highd_dir, [])
 
 
-def _highd_config(highd_dir):
-  config = dataset_config.get_config("tiny")
-  config.source = "highd"
-  config.highd_dir = str(highd_dir)
-  config.splits.train, config.splits.test = (1,), (2,)
-  config.extraction.lc_offsets_s = (0.5, 1.0)
-  return config
-
-
-def test_bad_input_leaves_cache_intact(highd_dir, tmp_path):
+def test_bad_input_leaves_cache_intact(highd_config, highd_dir, tmp_path):
   out = tmp_path / "out"
-  dataset.build(_highd_config(highd_dir), out)
+  dataset.build(highd_config(), out)
   before = {p.name: p.read_bytes() for p in (out / "cache").iterdir()}
   _edit_line(highd_dir / "02_tracks.csv", 9, 3, "")
-  config = _highd_config(highd_dir)
+  config = highd_config()
   config.extraction.kl_stride_s = 2.0  # other settings: a rebuild is needed, and fails
   with pytest.raises(DataError):
     dataset.build(config, out)

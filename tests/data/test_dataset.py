@@ -3,54 +3,44 @@
 import numpy as np
 import pytest
 
-from configs import dataset as dataset_config
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.errors import DataError
 
 
-def _config(highd_dir):
-  config = dataset_config.get_config("tiny")
-  config.source = "highd"
-  config.highd_dir = str(highd_dir)
-  config.splits.train, config.splits.test = (1,), (2,)
-  config.extraction.lc_offsets_s = (0.5, 1.0)
-  return config
-
-
-def test_build_reuse_and_rebuild(highd_dir, tmp_path):
+def test_build_reuse_and_rebuild(highd_config, highd_dir, tmp_path):
   out = tmp_path / "out"
-  splits = dataset.build(_config(highd_dir), out)
+  splits = dataset.build(highd_config(), out)
   assert set(splits) == {"train", "test"}
   assert np.bincount(splits["train"].label).tolist() == [2, 2, 2]
   assert set(splits["test"].recording_id.tolist()) == {2}
   ident = dataset.dataset_id(out)
   stamp = (out / "cache" / "train.npz").stat().st_mtime_ns
-  again = dataset.build(_config(highd_dir), out)  # same settings: reused, not rewritten
+  again = dataset.build(highd_config(), out)  # same settings: reused, not rewritten
   assert (out / "cache" / "train.npz").stat().st_mtime_ns == stamp
   np.testing.assert_array_equal(again["train"].xi, splits["train"].xi)
   assert dataset.dataset_id(out) == ident
   np.testing.assert_array_equal(dataset.load_split(out, "test").frame, splits["test"].frame)
-  config = _config(highd_dir)
+  config = highd_config()
   config.extraction.lc_offsets_s = (1.0,)  # other settings: rebuilt
   assert len(dataset.build(config, out)["train"]) == 3
   assert dataset.dataset_id(out) != ident
 
 
-def test_changed_source_file_rebuilds(highd_dir, tmp_path):
+def test_changed_source_file_rebuilds(highd_config, highd_dir, tmp_path):
   out = tmp_path / "out"
-  dataset.build(_config(highd_dir), out)
+  dataset.build(highd_config(), out)
   ident = dataset.dataset_id(out)
   with open(highd_dir / "01_tracksMeta.csv", "a") as handle:
     handle.write("\n")  # size changes
-  dataset.build(_config(highd_dir), out)
+  dataset.build(highd_config(), out)
   assert dataset.dataset_id(out) != ident
 
 
-def test_load_split_errors(highd_dir, tmp_path):
+def test_load_split_errors(highd_config, highd_dir, tmp_path):
   out = tmp_path / "out"
   with pytest.raises(DataError, match="no dataset cache"):
     dataset.load_split(out, "train")
-  dataset.build(_config(highd_dir), out)
+  dataset.build(highd_config(), out)
   with pytest.raises(DataError, match=r"unknown split 'val', available: \['test', 'train'\]"):
     dataset.load_split(out, "val")
   path = out / "cache" / "test.npz"
@@ -59,8 +49,8 @@ def test_load_split_errors(highd_dir, tmp_path):
     dataset.load_split(out, "test")
 
 
-def test_missing_split_recordings(highd_dir, tmp_path):
-  config = _config(highd_dir)
+def test_missing_split_recordings(highd_config, highd_dir, tmp_path):
+  config = highd_config()
   config.splits.test = (7,)
   with pytest.raises(DataError, match="empty selection") as info:
     dataset.build(config, tmp_path / "out")

@@ -78,3 +78,14 @@ def test_load_of_missing_step_and_garbled_checkpoint(tmp_path):
   (tmp_path / "1" / "state" / "_METADATA").write_text("{not json")
   with pytest.raises(CheckpointMismatchError, match=f"checkpoint {tmp_path / '1'} is corrupt"):
     reader.load(1, _abstract(state))
+
+
+def test_relative_root_works(tmp_path, monkeypatch):
+  """Users pass relative workdirs (runs/demo/...); orbax itself needs absolute paths."""
+  monkeypatch.chdir(tmp_path)
+  state = _state()
+  with checkpointing.Checkpoints("runs/x/checkpoints", keep=1) as ckpts:
+    ckpts.save(1, state, {"q": 1})
+  restored, _ = checkpointing.Checkpoints("runs/x/checkpoints", writable=False).load(
+      1, _abstract(state))
+  np.testing.assert_array_equal(restored["params"]["w"], state["params"]["w"])

@@ -87,6 +87,17 @@ def test_two_devices_match_one_device_and_odd_batch_is_refused(tmp_path):
   assert "batch_size=5 must be a positive multiple of the number of devices (2)" in odd.stderr
 
 
+@pytest.mark.parametrize("task", ["diffusion", "tokenizer"])
+def test_real_models_on_two_devices_match_one_device(tmp_path, task):
+  args = dict(task=task, epochs=1, m=12, batch_size=4)
+  one, r1 = _run_job(tmp_path / "one", devices=1, **args)
+  two, r2 = _run_job(tmp_path / "two", devices=2, **args)
+  assert r1 and r2, one.stderr[-2000:] + two.stderr[-2000:]
+  assert (r1["devices"], r2["devices"]) == (1, 2)
+  np.testing.assert_allclose(r2["loss"], r1["loss"], rtol=1e-4)
+  np.testing.assert_allclose(r2["params"], r1["params"], rtol=1e-4, atol=1e-5)
+
+
 def test_resumed_run_is_bit_identical_and_finished_run_does_not_train(tmp_path):
   full = _train(tmp_path / "full", epochs=4)
   _train(tmp_path / "cut", epochs=2)

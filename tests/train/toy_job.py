@@ -1,4 +1,7 @@
-"""Runs the toy task through `cvmdx_jax.train.loop.train` in its own process.
+"""Runs a task through `cvmdx_jax.train.loop.train` in its own process.
+
+Tasks (`--task`): "toy" (the MLP of toy.py), "diffusion" and "tokenizer" (the real
+step functions with their `:tiny` configs on synthetic data).
 
 Used by the tests for what needs a fresh process: several CPU devices (XLA_FLAGS must be
 set before jax is imported) and being killed with SIGKILL. Prints one line
@@ -12,9 +15,35 @@ import sys
 import time
 
 import jax
+import numpy as np
 
 from cvmdx_jax.train import loop
 from tests.train import toy
+
+
+def _task(name: str, m: int):
+  """(init_fn, step_fn, data) of a task."""
+  if name == "toy":
+    return (*toy.make_task(), toy.make_data(m))
+  rng = np.random.default_rng(0)
+  if name == "diffusion":
+    from configs import diffusion as diffusion_config
+    from cvmdx_jax.train import diffusion
+    config = diffusion_config.get_config("tiny")
+    cfg = diffusion.unet_config(config, num_tokens=4)
+    _, init_fn, step_fn = diffusion.init_and_step(config, cfg, total_steps=100)
+    data = {"x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
+            "q": rng.integers(0, 4, m).astype(np.int32)}
+    return init_fn, step_fn, data
+  from configs import tokenizer as tokenizer_config
+  from cvmdx_jax.train import tokenizer
+  model_cfg = tokenizer.model_config(tokenizer_config.get_config("tiny"))
+  tx = tokenizer.optimizer(tokenizer_config.get_config("tiny"))
+  graphdef = tokenizer.make_graphdef(model_cfg)
+  data = {"xi": rng.normal(0, [20, 2, 30, 0.3], (m, 9, 75, 4)).astype(np.float32),
+          "mask": rng.uniform(size=(m, 9, 75)) < 0.8, "label": rng.integers(0, 3, m)}
+  return (tokenizer.make_init_fn(model_cfg, tx), tokenizer.make_step_fn(graphdef, model_cfg, tx),
+          data)
 
 
 def main() -> int:
@@ -24,9 +53,10 @@ def main() -> int:
   p.add_argument("--batch_size", type=int, default=8)
   p.add_argument("--m", type=int, default=36)
   p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--task", default="toy", choices=("toy", "diffusion", "tokenizer"))
   p.add_argument("--sleep", type=float, default=0.0, help="seconds to idle after each epoch")
   a = p.parse_args()
-  init_fn, step_fn = toy.make_task()
+  init_fn, step_fn, data = _task(a.task, a.m)
 
   def epoch_end(state, epoch):
     print(f"epoch {epoch}", flush=True)
@@ -35,7 +65,7 @@ def main() -> int:
 
   try:
     state = loop.train(workdir=a.workdir, init_fn=init_fn, step_fn=step_fn,
-                       data=toy.make_data(a.m), batch_size=a.batch_size,
+                       data=data, batch_size=a.batch_size,
                        num_epochs=a.epochs, seed=a.seed, fingerprint={"task": "toy"},
                        epoch_end_fn=epoch_end)
   except ValueError as e:

@@ -1,0 +1,89 @@
+"""Smoke test of the whole pipeline on tiny configs: SUMO data -> tokeniser ->
+diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
+
+import json
+
+import numpy as np
+import pytest
+
+from configs import dataset as dataset_config
+from configs import diffusion as diffusion_config
+from configs import tokenizer as tokenizer_config
+from cvmdx_jax import evaluation, report
+from cvmdx_jax.data import dataset
+from cvmdx_jax.predict import IncompatibleRunsError, Predictor
+from cvmdx_jax.train import diffusion, tokenizer
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+  root = tmp_path_factory.mktemp("pipeline")
+  data_dir = root / "data"
+  dataset.build(dataset_config.get_config("tiny"), data_dir)
+  tok = tokenizer_config.get_config("tiny")
+  tok.data_dir = str(data_dir)
+  tokenizer.train_and_evaluate(tok, root / "tokenizer")
+  diff = diffusion_config.get_config("tiny")
+  diff.data_dir, diff.tokenizer_dir = str(data_dir), str(root / "tokenizer")
+  diffusion.train_and_evaluate(diff, root / "diffusion")
+  return root
+
+
+def test_report_has_every_method_subset_and_figure(runs):
+  results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+                       data_dir=runs / "data", workdir=runs / "eval", max_scenarios=30,
+                       ddpm_scenarios=3)
+  saved = json.loads((runs / "eval" / "metrics.json").read_text())
+  assert set(evaluation.METHODS) <= set(saved)
+  for method in evaluation.METHODS:
+    assert set(saved[method]) == set(evaluation.SUBSETS)
+    for subset in evaluation.SUBSETS:
+      row = saved[method][subset]
+      assert {"ade", "fde", "miss_rate", "hit_rate", "num_scenarios"} <= set(row)
+      assert row["ade"] <= row["fde"] + 1e-9 or method == "cvmdx_best_of_k"
+  assert saved["cv"]["all"]["num_scenarios"] == 30
+  assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
+  assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
+  for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
+    assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
+  assert "| Constant velocity |" in (runs / "eval" / "results.md").read_text()
+
+
+def test_predictor_is_deterministic_and_chunk_independent(runs):
+  scenarios = dataset.load_split(runs / "data", "test").take(np.arange(6))
+  predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
+  a = predictor(scenarios, seed=3)
+  b = Predictor.load(runs / "tokenizer", runs / "diffusion", chunk_size=4)(scenarios, seed=3)
+  c = predictor(scenarios, seed=4)
+  np.testing.assert_allclose(a.prediction.trajectories, b.prediction.trajectories, atol=1e-4)
+  np.testing.assert_array_equal(a.q, b.q)
+  assert not np.allclose(a.prediction.trajectories, c.prediction.trajectories)
+  assert a.prediction.trajectories.shape == (6, 9, 125, 2)
+  np.testing.assert_allclose(a.hypotheses.probs.sum(-1), 1.0, atol=1e-6)
+
+
+def test_predictor_refuses_bad_scenarios(runs):
+  scenarios = dataset.load_split(runs / "data", "test").take(np.arange(2))
+  predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
+  xi = scenarios.xi.copy()
+  xi[1, 0, 3, 0] = np.nan
+  with pytest.raises(ValueError, match="'xi' holds NaN/inf \\(scenario 1\\)"):
+    predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": xi}))
+  with pytest.raises(ValueError, match="'xi' has shape"):
+    predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": scenarios.xi[:, :, :50]}))
+
+
+def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):
+  other = tokenizer_config.get_config("tiny,q=5")
+  other.data_dir = str(runs / "data")
+  tokenizer.train_and_evaluate(other, tmp_path / "other_tokenizer")
+  with pytest.raises(IncompatibleRunsError, match="5"):
+    Predictor.load(tmp_path / "other_tokenizer", runs / "diffusion")
+
+
+def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
+  out = tmp_path / "eval"
+  with pytest.raises(ValueError, match="validation"):
+    report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+               data_dir=runs / "data", workdir=out, split="validation")
+  assert not out.exists()
