@@ -31,6 +31,8 @@ class SamplingConfig:
     eta: DDIM noise (0 = deterministic).
     clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
       official sampler clips to [-1, 1]); None = no clipping.
+    control_scale: (m/s^2, rad/s) that one normalised unit of [a_x, yaw_rate] stands
+      for; a property of the trained denoiser (`Predictor` sets it from the run).
     guidance: `GuidanceConfig`.
     hypotheses: `HypothesisConfig`.
   """
@@ -40,6 +42,7 @@ class SamplingConfig:
   steps: int = 10
   eta: float = 0.0
   clip_x0: float | None = 1.0
+  control_scale: tuple[float, float] = normalization.PAPER_SCALE
   guidance: GuidanceConfig = GuidanceConfig()
   hypotheses: HypothesisConfig = HypothesisConfig()
 
@@ -105,7 +108,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Sched
   x0 = jax.vmap(lambda qi, di, ki: sample_controls(
       graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
       config=config))(q, delta, keys)
-  controls = normalization.denormalize_controls(x0)
+  controls = normalization.denormalize_controls(x0, config.control_scale)
   trajectories = vmm.rollout(controls, v0[:, None], psi0[:, None])
   return Prediction(controls=controls, trajectories=trajectories,
                     mean=jnp.mean(trajectories, axis=1),

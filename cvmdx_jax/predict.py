@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm import tqdm
 
 from cvmdx_jax import constants, sharding
 from cvmdx_jax.data.scenarios import Scenarios
@@ -111,8 +112,8 @@ class Predictor:
           f"denoiser {diffusion_dir} was not trained on tokens of tokeniser {tokenizer_dir}: "
           f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
           f"tokeniser fingerprint keys: {differing}")
-    if sampling is None:
-      sampling = diffusion_train.sampling_config(denoiser.config)
+    trained = diffusion_train.sampling_config(denoiser.config)
+    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale)
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size)
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
@@ -127,7 +128,7 @@ class Predictor:
     params = sharding.replicate((self.denoiser.graphdef, self.denoiser.params), mesh)
     bundle = sharding.replicate(self.tokenizer, mesh)
     outputs = []
-    for start in range(0, m, chunk):
+    for start in tqdm(range(0, m, chunk), desc="predict", unit="chunk", disable=m <= chunk):
       idx = np.arange(start, min(start + chunk, m))
       inputs = {"xi": np.asarray(scenarios.xi[idx], np.float32),
                 "mask": np.asarray(scenarios.mask[idx], bool),

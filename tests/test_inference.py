@@ -40,7 +40,7 @@ def test_shapes_and_consistency(model):
   np.testing.assert_allclose(out.mean, out.trajectories.mean(1), atol=1e-4)
   # trajectories are the VMM rollout of the controls, which stay in the normalised caps
   np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)
-  x0 = out.controls / normalization.denormalize_controls(jnp.ones(2))
+  x0 = out.controls / jnp.asarray(normalization.PAPER_SCALE)
   assert float(jnp.abs(x0).max()) <= 1.0 + 1e-5
 
 
@@ -64,3 +64,14 @@ def test_ddpm_path_and_bad_config(model):
   assert out.trajectories.shape == (2, 3, 125, 2)
   with pytest.raises(ValueError, match="sampler"):
     inference.SamplingConfig(sampler="euler")
+
+
+def test_control_scale_sets_the_physical_range(model):
+  keys = jax.random.split(jax.random.key(0), 2)
+  narrow = dataclasses.replace(SAMPLING, control_scale=(2.0, 0.1))
+  a = _predict(model, keys, b=2)
+  b = _predict(model, keys, b=2, config=narrow)
+  # same normalised samples, other physical units
+  np.testing.assert_allclose(b.controls[..., 0] * 2.0, a.controls[..., 0], rtol=1e-4, atol=1e-6)
+  np.testing.assert_allclose(b.controls[..., 1] * 7.0, a.controls[..., 1], rtol=1e-4, atol=1e-6)
+  assert float(jnp.abs(b.controls[..., 1]).max()) <= 0.1 + 1e-6

@@ -40,6 +40,7 @@ def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
   return SamplingConfig(
       num_samples=s.num_samples, sampler=s.sampler, steps=s.steps, eta=s.eta,
       clip_x0=s.clip_x0 if s.clip_x0 > 0 else None,
+      control_scale=tuple(config.diffusion.control_scale),
       guidance=GuidanceConfig(**s.guidance.to_dict()),
       hypotheses=HypothesisConfig(**s.hypotheses.to_dict()))
 
@@ -59,7 +60,9 @@ def make_init_fn(cfg: unet1d.UNetConfig, tx):
 
   def init_fn(key):
     _, params = unet1d.init_unet(cfg, key)
-    return {"params": params, "ema_params": params, "opt_state": tx.init(params),
+    # a copy, so that donating the state never donates one buffer twice
+    return {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
+            "opt_state": tx.init(params),
             "step": jnp.zeros((), jnp.int32)}
   return init_fn
 
@@ -93,6 +96,7 @@ def fingerprint(config, cfg: unet1d.UNetConfig, dataset_id: str, tokens_meta: di
   """What a checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
   checkpoint = tokens_meta.get("checkpoint", {})
   return {"model": dataclasses.asdict(cfg), "num_diffusion_steps": config.diffusion.num_steps,
+          "control_scale": list(config.diffusion.control_scale),
           "dataset_id": dataset_id,
           "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
                         "step": checkpoint.get("step")}}
@@ -104,7 +108,8 @@ def training_data(config) -> tuple[dict, int, str, dict]:
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
                                       dataset_id=dataset_id, num_scenarios=len(scenarios))
-  x0 = np.asarray(normalization.normalize_controls(scenarios.controls), np.float32)
+  scale = tuple(config.diffusion.control_scale)
+  x0 = np.asarray(normalization.normalize_controls(scenarios.controls, scale), np.float32)
   return {"x0": x0, "q": toks.q.astype(np.int32)}, int(meta["codebook_size"]), dataset_id, meta
 
 
