@@ -2,6 +2,10 @@
 diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +17,8 @@ from cvmdx_jax import evaluation, report
 from cvmdx_jax.data import dataset
 from cvmdx_jax.predict import IncompatibleRunsError, Predictor
 from cvmdx_jax.train import diffusion, tokenizer
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -87,3 +93,18 @@ def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
     report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
                data_dir=runs / "data", workdir=out, split="validation")
   assert not out.exists()
+
+
+def test_codebook_ablation_script(runs, tmp_path):
+  out = tmp_path / "ablation"
+  proc = subprocess.run(
+      [sys.executable, str(REPO / "experiments" / "ablate_codebook.py"),
+       f"--data_dir={runs / 'data'}", f"--workdir={out}", "--codebook_sizes=4,6",
+       "--tokenizer_preset=tiny", "--diffusion_preset=tiny", "--max_scenarios=12"],
+      env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  rows = [line for line in (out / "ablation.md").read_text().splitlines()
+          if line.startswith("| cvq |")]
+  assert [r.split("|")[2].strip() for r in rows] == ["4", "6"]
+  saved = json.loads((out / "ablation.json").read_text())
+  assert saved["cvq_q6"]["cvmdx_mean"]["all"]["num_scenarios"] == 12
