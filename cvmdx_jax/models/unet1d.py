@@ -142,6 +142,11 @@ def init_unet(config: UNetConfig, key: jax.Array):
   return nnx.split(UNet1D(config, rngs=nnx.Rngs(params=key)))
 
 
+def make_graphdef(config: UNetConfig):
+  """The graph definition alone (no parameters are allocated)."""
+  return nnx.split(nnx.eval_shape(lambda: UNet1D(config, rngs=nnx.Rngs(0))))[0]
+
+
 def apply_unet(graphdef, params, x_t, t, q, dropout_key=None):
   """Functional forward pass: v (B, L, C)."""
   return nnx.merge(graphdef, params)(x_t, t, q, dropout_key)

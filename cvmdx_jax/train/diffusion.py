@@ -115,7 +115,7 @@ def training_data(config) -> tuple[dict, int, str, dict]:
 
 def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
   """(graphdef, init_fn, step_fn) of a run with `total_steps` optimiser steps."""
-  graphdef, _ = unet1d.init_unet(cfg, jax.random.key(0))
+  graphdef = unet1d.make_graphdef(cfg)
   tx = optimizer(config, total_steps)
   step_fn = make_step_fn(graphdef, cfg, tx, cond_drop_prob=config.diffusion.cond_drop_prob,
                          ema_decay=config.train.ema_decay, num_steps=config.diffusion.num_steps)
