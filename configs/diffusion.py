@@ -99,6 +99,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train.learning_rate = 1e-3
     config.train.warmup_steps = 200
     config.train.ema_decay = 0.999
+    # 0.1 rad/s per unit (clips the 0.1 % of SUMO steps above it): the small model's
+    # token-conditional mean was off by ~1 m laterally at 5 s with 0.7 (BUILD_NOTES.md)
+    config.diffusion.control_scale = (4.0, 0.1)
   if arg.paper or arg.reference:
     config.train.num_epochs = 2000
     config.train.checkpoint_every = 50

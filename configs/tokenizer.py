@@ -16,6 +16,13 @@ Zheng & Vedaldi's 10: with 10, an entry must go unused for a few hundred steps b
 anchor pull acts, and in ~1,000-step runs on the small SUMO set 14 of 60 entries ended
 dead (46/60 in use); with 0.1, 57/60 (measured with the :demo preset on the :small
 SUMO dataset; revive_strength=1.0 gave 54/60).
+
+`ego_weight` (30) weighs the ego's features in the reconstruction error against each
+neighbour's (1): the diffusion model sees only the token, so the token must tell how
+this vehicle is moving, not only where its neighbours are. With weight 1 the ego is 1/9
+of the loss and the tokens told its acceleration and lateral drift poorly (token-mean
+rollout ADE 1.51 m vs constant velocity 1.56 m on the :small test split; 1.33-1.41 m
+with weight 30 and the velocity scales of `cvmdx_jax.scenario_norm`; BUILD_NOTES.md).
 """
 
 import ml_collections
@@ -41,6 +48,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   config.usage_decay = 0.99  # CVQ: gamma of the running usage average
   config.revive_strength = 0.1  # CVQ: how fast the anchor pull fades with usage (Zheng: 10)
   config.cls_weight = 1.0  # lambda, weight of the maneuver cross-entropy
+  config.ego_weight = 30.0  # weight of the ego's features in the reconstruction error
 
   config.batch_size = 64  # global batch (paper: 64)
   config.num_epochs = 100  # passes over the training split

@@ -108,3 +108,24 @@ def test_codebook_ablation_script(runs, tmp_path):
   assert [r.split("|")[2].strip() for r in rows] == ["4", "6"]
   saved = json.loads((out / "ablation.json").read_text())
   assert saved["cvq_q6"]["cvmdx_mean"]["all"]["num_scenarios"] == 12
+
+
+def test_codebook_health_script(runs, tmp_path):
+  out = tmp_path / "health"
+  proc = subprocess.run(
+      [sys.executable, str(REPO / "experiments" / "codebook_health.py"),
+       "--config=configs/tokenizer.py:tiny", f"--config.data_dir={runs / 'data'}",
+       f"--workdir={out}", "--codebook_sizes=4"],
+      cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True,
+      timeout=600)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  lines = (out / "codebook_health.md").read_text().splitlines()
+  cells = {line.split("|")[2].strip(): line.split("|")[1:-1] for line in lines[2:]}
+  assert set(cells) == {"constant velocity", "cvq", "vq"}
+  test = dataset.load_split(runs / "data", "test")
+  cv = test.xi[:, 0, -1, None, 2:4] * (0.04 * np.arange(1, 126))[None, :, None]
+  err = np.linalg.norm(cv - test.future, axis=-1)
+  np.testing.assert_allclose([float(v) for v in cells["constant velocity"][-2:]],
+                             [err.mean(), err[:, -1].mean()], atol=1e-3)
+  for kind in ("cvq", "vq"):
+    assert all(np.isfinite(float(v)) for v in cells[kind][-2:])

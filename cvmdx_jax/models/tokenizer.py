@@ -30,11 +30,14 @@ class TokenizerConfig:
     encoder: sizes of E and D.
     quantizer: codebook settings; its latent_dim must equal encoder.latent_dim.
     cls_weight: lambda, weight of the maneuver cross-entropy.
+    ego_weight: weight of the ego vehicle's features in the reconstruction error (each
+      neighbour has weight 1).
   """
 
   encoder: EncoderConfig = EncoderConfig()
   quantizer: quantizer_lib.QuantizerConfig = quantizer_lib.QuantizerConfig()
   cls_weight: float = 1.0
+  ego_weight: float = 1.0
 
   def __post_init__(self):
     if self.encoder.latent_dim != self.quantizer.latent_dim:
@@ -96,7 +99,8 @@ def loss_fn(model: Tokenizer, batch: dict, config: TokenizerConfig):
   """
   out = model(batch["xi"], batch["mask"])
   weight = batch["weight"].astype(jnp.float32)
-  mask = batch["mask"].astype(jnp.float32)[..., None]
+  vehicle_weight = jnp.ones(constants.NUM_VEHICLES).at[0].set(config.ego_weight)
+  mask = batch["mask"].astype(jnp.float32)[..., None] * vehicle_weight[:, None, None]
   target = scenario_norm.normalize_xi(batch["xi"], batch["mask"])
   sq_err = jnp.sum(mask * (out.reconstruction - target) ** 2, axis=(1, 2, 3))
   recon = sq_err / jnp.maximum(jnp.sum(mask, axis=(1, 2, 3)) * constants.NUM_FEATURES, 1.0)

@@ -44,14 +44,14 @@ def model_config(config: ml_collections.ConfigDict) -> tokenizer_lib.TokenizerCo
           kind=config.quantizer, codebook_size=config.codebook_size,
           latent_dim=config.latent_dim, beta=config.beta, usage_decay=config.usage_decay,
           revive_strength=config.revive_strength),
-      cls_weight=config.cls_weight)
+      cls_weight=config.cls_weight, ego_weight=config.ego_weight)
 
 
 def _model_config_from_json(d: dict) -> tokenizer_lib.TokenizerConfig:
   enc = {**d["encoder"], "channels": tuple(d["encoder"]["channels"])}
   return tokenizer_lib.TokenizerConfig(EncoderConfig(**enc),
                                        quantizer_lib.QuantizerConfig(**d["quantizer"]),
-                                       d["cls_weight"])
+                                       d["cls_weight"], d["ego_weight"])
 
 
 def fingerprint(model_cfg: tokenizer_lib.TokenizerConfig, dataset_id: str) -> dict:

@@ -15,7 +15,7 @@ def test_normalisation_hand_values_and_mask():
   xi = np.array([[[[50.0, -3.5, 35.0, 0.25]], [[1.0, 2.0, 3.0, 4.0]]]], np.float32)  # (1,2,1,4)
   mask = np.array([[[True], [False]]])
   out = np.asarray(scenario_norm.encoder_input(xi, mask))
-  np.testing.assert_allclose(out[0, 0, 0], [0.5, -1.0, 0.5, 0.5, 1.0], rtol=1e-6)
+  np.testing.assert_allclose(out[0, 0, 0], [0.5, -1.0, 2.5, 2.5, 1.0], rtol=1e-6)
   np.testing.assert_array_equal(out[0, 1, 0], [0, 0, 0, 0, 0])
   np.testing.assert_allclose(scenario_norm.denormalize_xi(out[0, 0, 0, :4]), xi[0, 0, 0],
                              rtol=1e-6)
@@ -57,6 +57,20 @@ def test_total_loss_is_the_weighted_sum_of_its_terms(scenarios_factory):
   logits = np.asarray(out.logits, np.float64)
   ce = -(logits[np.arange(5), s.label] - np.log(np.exp(logits).sum(-1))).mean()
   np.testing.assert_allclose(m["classification"], ce, rtol=1e-5)
+
+
+def test_reconstruction_weighs_the_ego_by_ego_weight(scenarios_factory):
+  cfg, model = _model(2)
+  assert cfg.ego_weight != 1.0
+  s = scenarios_factory(4)
+  batch = {"xi": s.xi, "mask": s.mask, "label": s.label, "weight": np.ones(4, np.float32)}
+  _, (m, out) = _loss(model, batch, cfg)
+  target = np.asarray(scenario_norm.normalize_xi(s.xi, s.mask), np.float64)
+  sq = (np.asarray(out.reconstruction, np.float64) - target) ** 2  # (4, 9, 75, 4)
+  w = np.where(s.mask, 1.0, 0.0)[..., None] * np.ones(4)
+  w[:, 0] *= cfg.ego_weight
+  expected = np.mean([(w[b] * sq[b]).sum() / w[b].sum() for b in range(4)])
+  np.testing.assert_allclose(m["reconstruction"], expected, rtol=1e-5)
 
 
 def test_classifier_beats_chance_on_separable_toy_set(scenarios_factory):
