@@ -9,14 +9,13 @@ finished runs), evaluates on the test split, and writes `<workdir>/ablation.md` 
 most likely p(c) and best-of-K ADE / FDE per row) and `<workdir>/ablation.json`.
 """
 
-import sys
 from pathlib import Path
 
 from absl import app, flags
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import atomic, report
+from cvmdx_jax import atomic, cli, report
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -70,8 +69,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  try:
-    app.run(main)
-  except (ValueError, FileNotFoundError) as e:
-    print(f"ablate_codebook: error: {e}", file=sys.stderr)
-    sys.exit(2)
+  cli.run(main)

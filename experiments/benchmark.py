@@ -57,12 +57,9 @@ def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, r
 
 
 def train_timing(config, cfg, batch: int, repeats: int):
-  graphdef, _ = unet1d.init_unet(cfg, jax.random.key(0))
-  tx = diffusion_train.optimizer(config, 10_000)
-  state = diffusion_train.make_init_fn(cfg, tx)(jax.random.key(0))
-  step = jax.jit(diffusion_train.make_step_fn(graphdef, cfg, tx, cond_drop_prob=0.1,
-                                              ema_decay=0.9999, num_steps=1000),
-                 donate_argnums=0)
+  _, init_fn, step_fn = diffusion_train.init_and_step(config, cfg, 10_000)
+  state = init_fn(jax.random.key(0))
+  step = jax.jit(step_fn, donate_argnums=0)
   data = {"x0": jax.random.uniform(jax.random.key(1), (batch, 125, 2), minval=-1, maxval=1),
           "q": jnp.arange(batch) % NUM_TOKENS, "weight": jnp.ones(batch)}
   holder = {"state": state}

@@ -5,11 +5,9 @@
       --workdir=runs/demo/eval
 """
 
-import sys
-
 from absl import app, flags
 
-from cvmdx_jax import report
+from cvmdx_jax import cli, report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
@@ -26,15 +24,11 @@ flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "wor
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
-  try:
-    report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
-               data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
-               seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value)
-  except (ValueError, FileNotFoundError) as e:
-    print(f"evaluate: error: {e}", file=sys.stderr)
-    sys.exit(2)
+  report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
+             data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
+             seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value)
   print(open(f"{_WORKDIR.value}/results.md").read())
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -8,7 +8,6 @@ reuses the dataset cache and the finished checkpoints. CPU-sized presets: datase
 `:small`, tokeniser `:demo`, diffusion `:demo` (change them with the flags below).
 """
 
-import sys
 import time
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from absl import app, flags
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import report
+from cvmdx_jax import cli, report
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
@@ -63,8 +62,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  try:
-    app.run(main)
-  except (ValueError, FileNotFoundError) as e:
-    print(f"run_demo: error: {e}", file=sys.stderr)
-    sys.exit(2)
+  cli.run(main)
