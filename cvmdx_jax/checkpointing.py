@@ -5,9 +5,11 @@ to a temporary name and renamed when complete (orbax), each holding the state an
 metadata dict (the run's fingerprint). A step directory without the commit marker orbax
 writes last, or a leftover temporary directory, is never loaded. Every failure a user can
 cause (no checkpoint, other fingerprint, other shapes, garbled files) is raised as
-`CheckpointMismatchError` naming the directory and the mismatch.
+`CheckpointMismatchError` naming the directory and the mismatch. orbax's INFO logging is
+silenced while orbax runs (`_quiet_orbax`), not for the whole process.
 """
 
+import contextlib
 import json
 import logging
 import os
@@ -36,7 +38,15 @@ class _QuietOrbax(logging.Filter):
     return record.levelno >= logging.WARNING or "orbax" not in record.pathname
 
 
-logging.getLogger("absl").addFilter(_QuietOrbax())
+@contextlib.contextmanager
+def _quiet_orbax():
+  """Installs `_QuietOrbax` on the absl logger for the duration of the block."""
+  logger, quiet = logging.getLogger("absl"), _QuietOrbax()
+  logger.addFilter(quiet)
+  try:
+    yield
+  finally:
+    logger.removeFilter(quiet)
 
 
 def to_json(value: Any, name: str = "fingerprint") -> Any:
@@ -90,14 +100,20 @@ def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
   return {_path_key(p): (tuple(x.shape), np.dtype(x.dtype).name) for p, x in leaves}
 
 
-def check_structure(saved_meta: Any, abstract_state: Any, where: str) -> None:
-  """Raises CheckpointMismatchError when leaves, shapes or dtypes differ, naming the leaf."""
+def check_structure(saved_meta: Any, abstract_state: Any, where: str,
+                    partial: bool = False) -> None:
+  """Raises CheckpointMismatchError when leaves, shapes or dtypes differ, naming the leaf.
+
+  With `partial`, leaves of the checkpoint that `abstract_state` lacks are allowed.
+  """
   saved, want = _leaf_specs(saved_meta), _leaf_specs(abstract_state)
   problems = []
   for k in sorted(set(saved) | set(want)):
     if k not in saved:
       problems.append(f"leaf {k!r} expected {want[k][0]} but absent from the checkpoint")
     elif k not in want:
+      if partial:
+        continue
       problems.append(f"leaf {k!r} {saved[k][0]} in the checkpoint but not expected")
     elif saved[k] != want[k]:
       problems.append(f"leaf {k!r}: checkpoint shape {saved[k][0]} {saved[k][1]}, "
@@ -136,9 +152,10 @@ class Checkpoints:
       shutil.rmtree(p)
     policy = ocp.training.preservation_policies
     try:
-      self._ckptr = ocp.training.Checkpointer(
-          self.root, preservation_policy=policy.LatestN(keep) if keep else None,
-          cleanup_tmp_directories=True)
+      with _quiet_orbax():
+        self._ckptr = ocp.training.Checkpointer(
+            self.root, preservation_policy=policy.LatestN(keep) if keep else None,
+            cleanup_tmp_directories=True)
     except Exception as e:  # orbax reads every step's metadata here
       raise CheckpointMismatchError(
           f"checkpoint directory {self.root} holds an unreadable checkpoint "
@@ -149,7 +166,8 @@ class Checkpoints:
 
   def __exit__(self, *exc) -> None:
     if self._ckptr is not None:
-      self._ckptr.close()
+      with _quiet_orbax():
+        self._ckptr.close()
 
   @property
   def latest_step(self) -> int | None:
@@ -160,17 +178,20 @@ class Checkpoints:
     """Writes `state` (a pytree of arrays) and JSON `metadata` as `step`; blocks until done."""
     if self._ckptr is None:
       raise ValueError(f"Checkpoints({self.root}) was opened read-only")
-    self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
-                     custom_metadata={"cvmdx": to_json(metadata, "checkpoint metadata")})
-    self._ckptr.wait()
+    with _quiet_orbax():
+      self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
+                       custom_metadata={"cvmdx": to_json(metadata, "checkpoint metadata")})
+      self._ckptr.wait()
     self._steps = _complete_steps(self.root)[0]
 
-  def load(self, step: int, abstract_state: Any) -> tuple[Any, Any]:
+  def load(self, step: int, abstract_state: Any, *, partial: bool = False) -> tuple[Any, Any]:
     """Restores `step` into the structure, shapes and shardings of `abstract_state`.
 
     Args:
       step: a complete step (see `latest_step`).
       abstract_state: pytree of `jax.ShapeDtypeStruct` (with `sharding`) to restore into.
+      partial: restore only the leaves of `abstract_state` (e.g. the parameters without
+        the optimiser state); other leaves of the checkpoint are not read.
 
     Returns:
       (state, metadata): the restored pytree and the JSON metadata saved with it.
@@ -183,15 +204,19 @@ class Checkpoints:
     if step not in self._steps:
       raise CheckpointMismatchError(f"no complete checkpoint {where}")
     try:
-      meta = ocp.metadata(where, _STATE)
+      with _quiet_orbax():
+        meta = ocp.metadata(where, _STATE)
       if meta.metadata is None:  # orbax returns None when it cannot parse the tree metadata
         raise ValueError("no readable pytree metadata")
     except Exception as e:
       raise CheckpointMismatchError(
           f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})") from e
-    check_structure(meta.metadata, abstract_state, str(where))
+    check_structure(meta.metadata, abstract_state, str(where), partial)
+    context = ocp.Context()
+    context.pytree.loading.partial_load = partial
     try:
-      state = ocp.load(where, abstract_state, checkpointable_name=_STATE)
+      with _quiet_orbax(), context:
+        state = ocp.load(where, abstract_state, checkpointable_name=_STATE)
       jax.block_until_ready(state)
     except Exception as e:
       raise CheckpointMismatchError(
@@ -200,3 +225,16 @@ class Checkpoints:
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
     return state, custom["cvmdx"]
+
+
+def load_latest(root: str | os.PathLike, abstract_state: Any, *,
+                partial: bool = False) -> tuple[Any, Any]:
+  """Restores the latest complete step under `root` (see `Checkpoints.load`).
+
+  Raises:
+    CheckpointMismatchError: no complete checkpoint, or `Checkpoints.load`'s reasons.
+  """
+  ckpts = Checkpoints(root, writable=False)
+  if ckpts.latest_step is None:
+    raise CheckpointMismatchError(f"no complete checkpoint under {ckpts.root}")
+  return ckpts.load(ckpts.latest_step, abstract_state, partial=partial)

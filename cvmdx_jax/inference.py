@@ -1,13 +1,13 @@
 """The inference path: (denoiser params, tokens q, delta, v0, psi0, keys) ->
 N sampled control sequences, their trajectories, the mean trajectory and the
-hypotheses, in one jitted call.
+hypotheses. Plain jittable code: the caller jits at its boundary (`predict.Predictor`;
+`jax.jit(predict_batch, static_argnames=STATIC_ARGNAMES)` for a batch alone).
 
 Each scenario draws its noise from its own key, so a scenario's samples do not
 depend on which other scenarios share the batch.
 """
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +18,7 @@ from cvmdx_jax.models.unet1d import apply_unet
 from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
 SAMPLERS = ("ddim", "ddpm")
+STATIC_ARGNAMES = ("graphdef", "null_token", "config")  # of `predict_batch` under jax.jit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +86,6 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
                      clip_x0=config.clip_x0)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "null_token", "config"))
 def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Schedule,
                   null_token: int, config: SamplingConfig = SamplingConfig()) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.

@@ -5,27 +5,25 @@
     out.mean, out.hypotheses.means, out.hypotheses.probs
 
 One jitted call per chunk goes from observed scenarios to tokens, uncertainty,
-guided DDIM samples, VMM trajectories and GMM/BIC hypotheses. Chunks are split over
-all visible devices (`jax.sharding`). Scenario i always draws its noise from
+guided DDIM samples, VMM trajectories and GMM/BIC hypotheses; it is the only jit on the
+path (the functions it calls are plain, jittable code) and compiles once per chunk
+shape. Chunks are split over all visible devices (`jax.sharding`); the parameters are
+replicated once, when the `Predictor` is made. Scenario i always draws its noise from
 `fold_in(key(seed), i)`, so results do not depend on the chunk size or device count.
 """
 
 import dataclasses
 import functools
-import json
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import constants, sharding
+from cvmdx_jax import checkpointing, constants, runs, sharding
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
-from cvmdx_jax.train import diffusion as diffusion_train
-from cvmdx_jax.train import tokenizer as tokenizer_train
 
 
 class IncompatibleRunsError(ValueError):
@@ -55,13 +53,12 @@ class PredictorOutput:
     return self.prediction.hypotheses
 
 
-@functools.partial(jax.jit, static_argnames=("null_token", "config"))
-def _predict(bundle, graphdef_params, xi, mask, v0, psi0, keys, schedule, *, null_token,
-             config):
-  graphdef, params = graphdef_params
-  q, _, delta = tokenizer_train.tokenize(bundle, xi, mask)
-  pred = predict_batch(graphdef, params, q, delta, v0, psi0, keys, schedule=schedule,
-                       null_token=null_token, config=config)
+@functools.partial(jax.jit, static_argnames="config")
+def _predict(tokenizer: runs.TokenizerBundle, denoiser: runs.Denoiser, xi, mask, v0, psi0,
+             keys, schedule, *, config: SamplingConfig):
+  q, _, delta = tokenizer.tokenize(xi, mask)
+  pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys,
+                       schedule=schedule, null_token=denoiser.null_token, config=config)
   return pred, q, delta
 
 
@@ -83,12 +80,21 @@ def check_scenarios(scenarios: Scenarios, source: str = "scenarios") -> None:
 
 @dataclasses.dataclass(frozen=True)
 class Predictor:
-  """Trained cVMDx: tokeniser bundle + denoiser + sampling settings."""
+  """Trained cVMDx: tokeniser bundle + denoiser + sampling settings.
 
-  tokenizer: tokenizer_train.TokenizerBundle
-  denoiser: diffusion_train.Denoiser
+  On construction the tokeniser's and the denoiser's arrays are replicated over the
+  devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
+  """
+
+  tokenizer: runs.TokenizerBundle
+  denoiser: runs.Denoiser
   sampling: SamplingConfig
   chunk_size: int = 256
+
+  def __post_init__(self):
+    mesh = sharding.data_mesh()
+    object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
+    object.__setattr__(self, "denoiser", sharding.replicate(self.denoiser, mesh))
 
   @classmethod
   def load(cls, tokenizer_dir, diffusion_dir, sampling: SamplingConfig | None = None,
@@ -99,11 +105,11 @@ class Predictor:
       IncompatibleRunsError: the denoiser was trained on tokens of another tokeniser
         checkpoint, or its token count differs from the codebook size.
     """
-    bundle = tokenizer_train.load_tokenizer(tokenizer_dir)
-    denoiser = diffusion_train.load_denoiser(diffusion_dir)
-    used = denoiser.fingerprint.get("tokenizer", {}).get("fingerprint")
-    given = json.loads((Path(tokenizer_dir) / tokenizer_train.CONFIG_NAME).read_text())
-    given = given["fingerprint"]
+    bundle = runs.load_tokenizer(tokenizer_dir)
+    denoiser = runs.load_denoiser(diffusion_dir)
+    used = checkpointing.to_json(denoiser.fingerprint.to_dict())
+    used = used.get("tokenizer", {}).get("fingerprint")
+    given = checkpointing.to_json(bundle.fingerprint.to_dict())
     q = bundle.config.quantizer.codebook_size
     if denoiser.unet.num_tokens != q or used != given:
       differing = sorted(k for k in set(used or {}) | set(given)
@@ -112,7 +118,7 @@ class Predictor:
           f"denoiser {diffusion_dir} was not trained on tokens of tokeniser {tokenizer_dir}: "
           f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
           f"tokeniser fingerprint keys: {differing}")
-    trained = diffusion_train.sampling_config(denoiser.config)
+    trained = runs.sampling_config(denoiser.config)
     sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale)
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size)
 
@@ -125,8 +131,6 @@ class Predictor:
     chunk = min(chunk, -(-m // mesh.size) * mesh.size)
     base = jax.random.key(seed)
     schedule = cosine_schedule(self.denoiser.config.diffusion.num_steps)
-    params = sharding.replicate((self.denoiser.graphdef, self.denoiser.params), mesh)
-    bundle = sharding.replicate(self.tokenizer, mesh)
     outputs = []
     for start in tqdm(range(0, m, chunk), desc="predict", unit="chunk", disable=m <= chunk):
       idx = np.arange(start, min(start + chunk, m))
@@ -137,9 +141,8 @@ class Predictor:
       padded, weight = sharding.pad_batch(inputs, chunk)
       keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.asarray(padded.pop("index")))
       batch = sharding.shard_batch({**padded, "keys": keys}, mesh)
-      out = _predict(bundle, params, batch["xi"], batch["mask"], batch["v0"], batch["psi0"],
-                     batch["keys"], schedule, null_token=self.denoiser.unet.null_token,
-                     config=self.sampling)
+      out = _predict(self.tokenizer, self.denoiser, batch["xi"], batch["mask"], batch["v0"],
+                     batch["psi0"], batch["keys"], schedule, config=self.sampling)
       n = int(weight.sum())
       outputs.append(jax.tree.map(lambda a: np.asarray(a)[:n], out))
     pred, q, delta = jax.tree.map(lambda *xs: np.concatenate(xs), *outputs)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax.uncertainty import Gaussians
+from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"
 
@@ -50,6 +50,11 @@ class Tokens:
 def tokens_path(workdir: str | os.PathLike, split: str) -> Path:
   """<workdir>/tokens/<split>.npz."""
   return Path(workdir) / "tokens" / f"{split}.npz"
+
+
+def gaussians_path(workdir: str | os.PathLike) -> Path:
+  """<workdir>/tokens/gaussians.npz."""
+  return Path(workdir) / "tokens" / f"{GAUSSIANS_NAME}.npz"
 
 
 def _write_npz(path: Path, arrays: dict, metadata: dict) -> None:

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from configs import diffusion as diffusion_config
 from cvmdx_jax import diffusion, inference
 from cvmdx_jax.models import unet1d
+from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.train import diffusion as diffusion_train
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
@@ -27,6 +28,7 @@ _REF_BATCH = flags.DEFINE_integer("reference_batch", 16,
 _TRAIN_BATCH = flags.DEFINE_integer("train_batch", 256, "Batch of the training-step timing.")
 _REPEATS = flags.DEFINE_integer("repeats", 2, "Timed calls after the warm-up call.")
 NUM_TOKENS = 60
+_predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
 
 
 def _time(fn, repeats):
@@ -50,7 +52,7 @@ def forward_flops(graphdef, params, batch: int = 1) -> float:
 def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, repeats: int):
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
-  call = lambda: inference.predict_batch(
+  call = lambda: _predict_batch(
       graphdef, params, jnp.arange(b) % NUM_TOKENS, jnp.full(b, 5.0), jnp.full(b, 30.0),
       jnp.zeros(b), keys, schedule=schedule, null_token=NUM_TOKENS, config=config)
   return _time(call, repeats)
@@ -77,7 +79,7 @@ def main(argv):
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = diffusion_config.get_config(preset)
-    cfg = diffusion_train.unet_config(config, NUM_TOKENS)
+    cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=NUM_TOKENS)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
     gflop = forward_flops(graphdef, params) / 1e9
     per_scenario = gflop * ddim.num_samples * ddim.steps * 2  # cond + uncond per step

@@ -27,9 +27,11 @@ from sklearn import exceptions
 
 from cvmdx_jax import diffusion
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.multimodal import fit_hypotheses
 from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import reference
+
+fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 
 _SECTIONS = flags.DEFINE_list("sections", ["samplers", "hypotheses", "recovery"],
                               "Sections to run.")

@@ -4,7 +4,7 @@
       --config=configs/tokenizer.py:demo --workdir=runs/codebook_health
 
 Trains one tokeniser per (Q, quantizer) with the same config, data, seed and number of
-steps (only `codebook_size` and `quantizer` change) into <workdir>/<quantizer>_q<Q>, and
+steps (only `quantizer.codebook_size` and `.kind` change) into <workdir>/<quantizer>_q<Q>, and
 writes a Markdown table of entries in use (training scenarios per entry >= 1), their
 share of Q, perplexity of the token distribution over the training split, the
 maneuver accuracy on the training split, the number of steps, and how much the tokens
@@ -65,7 +65,7 @@ def main(argv):
   for q in (int(s) for s in _SIZES.value):
     for kind in ("cvq", "vq"):
       run = config.copy_and_resolve_references()
-      run.codebook_size, run.quantizer = q, kind
+      run.quantizer.codebook_size, run.quantizer.kind = q, kind
       run_dir = workdir / f"{kind}_q{q}"
       tokenizer.train_and_evaluate(run, run_dir)
       rows.append(_row(run_dir, q, kind, splits))

@@ -13,6 +13,7 @@ from cvmdx_jax.models import unet1d
 CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2)
 SAMPLING = inference.SamplingConfig(num_samples=9, steps=4)
+predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
 
 
 @pytest.fixture(scope="module")
@@ -25,9 +26,9 @@ def model():
 def _predict(model, keys, b=3, config=SAMPLING):
   g, p = model
   q = jnp.arange(b) % 4
-  return inference.predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
-                                 jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
-                                 null_token=CFG.null_token, config=config)
+  return predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
+                       jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
+                       null_token=CFG.null_token, config=config)
 
 
 def test_shapes_and_consistency(model):
@@ -51,9 +52,9 @@ def test_deterministic_and_batch_independent(model):
   other = _predict(model, jax.random.split(jax.random.key(8), 3))
   assert not np.allclose(a.trajectories, other.trajectories)
   g, p = model
-  solo = inference.predict_batch(g, p, jnp.array([1]), jnp.array([30.0]), jnp.array([30.0]),
-                                 jnp.zeros(1), keys[1:2], schedule=diffusion.cosine_schedule(),
-                                 null_token=CFG.null_token, config=SAMPLING)
+  solo = predict_batch(g, p, jnp.array([1]), jnp.array([30.0]), jnp.array([30.0]),
+                       jnp.zeros(1), keys[1:2], schedule=diffusion.cosine_schedule(),
+                       null_token=CFG.null_token, config=SAMPLING)
   np.testing.assert_allclose(solo.trajectories[0], a.trajectories[1], atol=1e-3)
 
 

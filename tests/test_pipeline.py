@@ -3,20 +3,26 @@ diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import pytest
 
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import evaluation, report
+from cvmdx_jax import checkpointing, evaluation, report
+from cvmdx_jax import runs as runs_lib
 from cvmdx_jax.data import dataset
+from cvmdx_jax.models import unet1d
 from cvmdx_jax.predict import IncompatibleRunsError, Predictor
-from cvmdx_jax.train import diffusion, tokenizer
+from cvmdx_jax.train import diffusion, loop, tokenizer
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -66,6 +72,27 @@ def test_predictor_is_deterministic_and_chunk_independent(runs):
   assert not np.allclose(a.prediction.trajectories, c.prediction.trajectories)
   assert a.prediction.trajectories.shape == (6, 9, 125, 2)
   np.testing.assert_allclose(a.hypotheses.probs.sum(-1), 1.0, atol=1e-6)
+
+
+def test_load_denoiser_restores_the_ema_params_alone_also_from_old_runs(runs, tmp_path):
+  denoiser = runs_lib.load_denoiser(runs / "diffusion")
+  # reference: the whole train state, restored with the trainer's init_fn
+  config = ml_collections.ConfigDict(json.loads((runs / "diffusion" / "config.json").read_text()))
+  _, init_fn, _ = diffusion.init_and_step(config, denoiser.unet, total_steps=1)
+  state, fingerprint = loop.load_latest(runs / "diffusion", init_fn)
+  jax.tree.map(np.testing.assert_array_equal, denoiser.params, state["ema_params"])
+  assert denoiser.fingerprint.to_dict()["dataset_id"] == fingerprint["dataset_id"]
+  x, t, q = jnp.ones((2, 125, 2)) * 0.3, jnp.array([10, 900]), jnp.array([0, denoiser.null_token])
+  np.testing.assert_array_equal(denoiser.apply(x, t, q), unet1d.apply_unet(
+      unet1d.make_graphdef(denoiser.unet), state["ema_params"], x, t, q))
+  # a run written when parameters were nnx.State (leaves '<path>/value') still loads
+  old = tmp_path / "old"
+  shutil.copytree(runs / "diffusion", old, ignore=shutil.ignore_patterns("checkpoints"))
+  wrapped = {**state, "ema_params": jax.tree.map(lambda a: {"value": a}, state["ema_params"])}
+  with checkpointing.Checkpoints(old / "checkpoints") as ckpts:
+    ckpts.save(1, wrapped, {"fingerprint": fingerprint})
+  jax.tree.map(np.testing.assert_array_equal, runs_lib.load_denoiser(old).params,
+               state["ema_params"])
 
 
 def test_predictor_refuses_bad_scenarios(runs):

@@ -6,6 +6,9 @@ Loss (paper, "Context Conditioning via CVQ-VAE"):
 with the reconstruction error over the normalised features of present vehicles only
 (mean over the mask), f_cl a linear layer on the straight-through z_q, and every term
 a weighted mean over the batch rows (padding rows have weight 0).
+
+Functional use, as the U-Net's: `graphdef, params = init_tokenizer(config, key)`, then
+`apply_tokenizer` / `encode` / `classify` with (graphdef, params) inside `jax.jit`.
 """
 
 import dataclasses
@@ -16,7 +19,8 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
-from cvmdx_jax import constants, scenario_norm
+from cvmdx_jax import constants
+from cvmdx_jax.models import functional, scenario_norm
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models.scenario_encoder import (EncoderConfig, ScenarioDecoder,
                                                ScenarioEncoder)
@@ -81,23 +85,51 @@ class Tokenizer(nnx.Module):
                   self.classifier(quantized.z_q))
 
 
+def init_tokenizer(config: TokenizerConfig, key: jax.Array):
+  """Builds the model; returns (graphdef, params), params a pure dict of arrays."""
+  return functional.init(lambda rngs: Tokenizer(config, rngs=rngs), key)
+
+
+def make_graphdef(config: TokenizerConfig):
+  """The graph definition alone (no parameters are allocated)."""
+  return functional.make_graphdef(lambda rngs: Tokenizer(config, rngs=rngs))
+
+
+def apply_tokenizer(graphdef, params, xi: jax.Array, mask: jax.Array) -> Output:
+  """Functional forward pass on (B, 9, 75, 4) physical xi and (B, 9, 75) mask."""
+  return nnx.merge(graphdef, params)(xi, mask)
+
+
+def encode(graphdef, params, xi: jax.Array, mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """(B, 9, 75, 4) physical xi, (B, 9, 75) mask -> (z_hat (B, D), token q (B,) int32)."""
+  model = nnx.merge(graphdef, params)
+  z_hat = model.encode(xi, mask)
+  return z_hat, quantizer_lib.nearest(model.codebook[...], z_hat)
+
+
+def classify(graphdef, params, q: jax.Array) -> jax.Array:
+  """Maneuver logits (..., 3) of tokens q (...,) from their codebook entries."""
+  model = nnx.merge(graphdef, params)
+  return model.classifier(model.codebook[...][q])
+
+
 def weighted_mean(values: jax.Array, weight: jax.Array) -> jax.Array:
   """(B,) per-row values, (B,) weights -> scalar weighted mean (0 for all-zero weights)."""
   return jnp.sum(values * weight) / jnp.maximum(jnp.sum(weight), 1e-12)
 
 
-def loss_fn(model: Tokenizer, batch: dict, config: TokenizerConfig):
+def loss_fn(graphdef, params, batch: dict, config: TokenizerConfig):
   """Tokeniser loss on a batch.
 
   Args:
-    model: the tokeniser.
+    graphdef, params: the tokeniser (`init_tokenizer`).
     batch: "xi" (B, 9, 75, 4), "mask" (B, 9, 75), "label" (B,) int, "weight" (B,).
     config: static settings (beta, lambda).
 
   Returns:
     (loss scalar, (metrics dict of scalars, Output)).
   """
-  out = model(batch["xi"], batch["mask"])
+  out = apply_tokenizer(graphdef, params, batch["xi"], batch["mask"])
   weight = batch["weight"].astype(jnp.float32)
   vehicle_weight = jnp.ones(constants.NUM_VEHICLES).at[0].set(config.ego_weight)
   mask = batch["mask"].astype(jnp.float32)[..., None] * vehicle_weight[:, None, None]

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants
+from cvmdx_jax.models import functional
 from cvmdx_jax.models.layers import Downsample, ResAttnBlock, Upsample, timestep_embedding
 
 
@@ -138,13 +139,13 @@ class UNet1D(nnx.Module):
 
 
 def init_unet(config: UNetConfig, key: jax.Array):
-  """Builds the model; returns (graphdef, params), params a pytree of arrays."""
-  return nnx.split(UNet1D(config, rngs=nnx.Rngs(params=key)))
+  """Builds the model; returns (graphdef, params), params a pure dict of arrays."""
+  return functional.init(lambda rngs: UNet1D(config, rngs=rngs), key)
 
 
 def make_graphdef(config: UNetConfig):
   """The graph definition alone (no parameters are allocated)."""
-  return nnx.split(nnx.eval_shape(lambda: UNet1D(config, rngs=nnx.Rngs(0))))[0]
+  return functional.make_graphdef(lambda rngs: UNet1D(config, rngs=rngs))
 
 
 def apply_unet(graphdef, params, x_t, t, q, dropout_key=None):

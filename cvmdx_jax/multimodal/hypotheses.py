@@ -4,8 +4,8 @@ Per scenario: scale x and y, flatten each trajectory, PCA to r dims, fit
 full-covariance GMMs with C = 1..c_max by EM, keep the C of lowest BIC, assign
 every sample to its most likely component, and report each hypothesis as the
 mean of its samples (in metres) with probability p(c) = share of samples.
-Everything is one `jax.jit`-compiled call, `vmap`-ped over scenarios and over
-C; nothing per scenario runs in Python and scikit-learn is not used.
+Everything is one jittable function, `vmap`-ped over scenarios and over C;
+nothing per scenario runs in Python and scikit-learn is not used.
 
 Hypothesis slots are ordered by probability, descending (ties keep the lower
 component index), so slot 0 is the most likely hypothesis and slots
@@ -13,7 +13,6 @@ component index), so slot 0 is the most likely hypothesis and slots
 """
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -135,19 +134,12 @@ def _select_one(points, trajectories, config: HypothesisConfig):
       bic=bic)
 
 
-@functools.partial(jax.jit, static_argnames="config")
-def _fit_jit(trajectories: jax.Array, config: HypothesisConfig) -> Hypotheses:
-  """Compiled body of `fit_hypotheses`; one trace per (shape, dtype, config)."""
-  points = embed(trajectories, config)
-  return jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories)
-
-
 def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
                    config: HypothesisConfig | None = None) -> Hypotheses:
   """Motion hypotheses of sampled trajectories, batched over scenarios.
 
-  Runs one jit-compiled call (also fine inside another jit); calls with the
-  same shapes and the same effective config reuse the compiled code.
+  Plain jittable code: jit it at the caller's boundary, e.g.
+  `jax.jit(fit_hypotheses, static_argnames=("c_max", "config"))`.
 
   Args:
     trajectories: (B, N, T, 2) sampled positions [x, y] in metres.
@@ -174,4 +166,5 @@ def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
   if config.c_max > trajectories.shape[1]:
     raise ValueError(
         f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples")
-  return _fit_jit(trajectories, config)
+  points = embed(trajectories, config)
+  return jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories)

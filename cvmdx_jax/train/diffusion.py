@@ -7,10 +7,7 @@ cosine decay to `min_lr`, global-norm clipping; an EMA of the weights (with the 
 warm-up of the decay, min(decay, (1 + step) / (10 + step))) is what inference uses.
 """
 
-import dataclasses
-import json
 import os
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -18,31 +15,12 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import atomic, normalization, tokens as tokens_lib
+from cvmdx_jax import normalization, runs, tokens as tokens_lib
+from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.diffusion import GuidanceConfig, cosine_schedule, v_loss
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.train import loop
-
-
-def unet_config(config: ml_collections.ConfigDict, num_tokens: int) -> unet1d.UNetConfig:
-  m = config.model
-  return unet1d.UNetConfig(num_tokens=num_tokens, base_channels=m.base_channels,
-                           channel_mult=tuple(m.channel_mult), num_res_blocks=m.num_res_blocks,
-                           emb_mult=m.emb_mult, attention_levels=tuple(m.attention_levels),
-                           num_heads=m.num_heads, groups=m.groups, dropout=m.dropout)
-
-
-def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
-  s = config.sampling
-  return SamplingConfig(
-      num_samples=s.num_samples, sampler=s.sampler, steps=s.steps, eta=s.eta,
-      clip_x0=s.clip_x0 if s.clip_x0 > 0 else None,
-      control_scale=tuple(config.diffusion.control_scale),
-      guidance=GuidanceConfig(**s.guidance.to_dict()),
-      hypotheses=HypothesisConfig(**s.hypotheses.to_dict()))
 
 
 def optimizer(config: ml_collections.ConfigDict, total_steps: int):
@@ -92,16 +70,6 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
   return step_fn
 
 
-def fingerprint(config, cfg: unet1d.UNetConfig, dataset_id: str, tokens_meta: dict) -> dict:
-  """What a checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
-  checkpoint = tokens_meta.get("checkpoint", {})
-  return {"model": dataclasses.asdict(cfg), "num_diffusion_steps": config.diffusion.num_steps,
-          "control_scale": list(config.diffusion.control_scale),
-          "dataset_id": dataset_id,
-          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
-                        "step": checkpoint.get("step")}}
-
-
 def training_data(config) -> tuple[dict, int, str, dict]:
   """(arrays {x0, q}, Q, dataset id, tokens metadata) of the training split."""
   scenarios = dataset_lib.load_split(config.data_dir, "train")
@@ -125,55 +93,17 @@ def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
-  `workdir` gets `config.json` (the run's config), `model.json` (U-Net config and
-  optimiser length, what `load_denoiser` needs), `metrics.jsonl` and `checkpoints/`.
+  `workdir` gets `config.json` (the run's config), `model.json` (the U-Net config),
+  `metrics.jsonl` and `checkpoints/` (`cvmdx_jax.runs` reads them for inference).
   """
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
-  cfg = unet_config(config, num_tokens)
+  cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
-  workdir = Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
-  atomic.write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
-                                       "total_steps": total_steps})
+  runs.write_diffusion_dir(workdir, config, cfg)
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
-      fingerprint=fingerprint(config, cfg, dataset_id, tokens_meta),
+      fingerprint=runs.diffusion_fingerprint(config, cfg, dataset_id, tokens_meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep, desc="diffusion")
 
-
-@dataclasses.dataclass(frozen=True)
-class Denoiser:
-  """A trained denoiser for inference.
-
-  Attributes:
-    graphdef: U-Net graph definition.
-    params: the EMA parameters.
-    unet: `UNetConfig`.
-    config: the run's ConfigDict (sampling defaults, data and tokeniser dirs).
-    fingerprint: what the checkpoint was trained on (dataset id, tokeniser).
-  """
-
-  graphdef: object
-  params: dict
-  unet: unet1d.UNetConfig
-  config: ml_collections.ConfigDict
-  fingerprint: dict
-
-
-def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
-  """Restores the latest checkpoint of a `train_and_evaluate` run."""
-  workdir = Path(workdir)
-  try:
-    config = ml_collections.ConfigDict(json.loads((workdir / "config.json").read_text()))
-    model = json.loads((workdir / "model.json").read_text())
-  except (OSError, ValueError) as e:
-    raise FileNotFoundError(f"{workdir}: not a diffusion run directory ({e})") from e
-  cfg = unet1d.UNetConfig(**{k: tuple(v) if isinstance(v, list) else v
-                             for k, v in model["unet"].items()})
-  graphdef, init_fn, _ = init_and_step(config, cfg, model["total_steps"])
-  state, saved = loop.load_latest(workdir, init_fn)
-  return Denoiser(graphdef=graphdef, params=state["ema_params"], unet=cfg, config=config,
-                  fingerprint=saved)

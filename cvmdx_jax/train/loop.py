@@ -23,8 +23,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from cvmdx_jax import checkpointing, sharding
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax import checkpointing, runs, sharding
 
 State = Any
 Batch = dict[str, jax.Array]
@@ -154,14 +153,14 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
 
   step = jax.jit(keyed_step, donate_argnums=0)
   data = {k: np.asarray(v) for k, v in data.items()}
-  with checkpointing.Checkpoints(workdir / "checkpoints", keep=keep) as ckpts:
+  with checkpointing.Checkpoints(workdir / runs.CHECKPOINTS, keep=keep) as ckpts:
     done = ckpts.latest_step or 0
     if done:
       state, saved = ckpts.load(done, abstract)
       checkpointing.check_metadata(saved, run_meta, str(ckpts.root / str(done)))
     else:
       state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
-    _trim_metrics(workdir / "metrics.jsonl", done)
+    _trim_metrics(workdir / runs.METRICS, done)
     with tqdm(total=num_epochs * steps_per_epoch, initial=min(done, num_epochs) * steps_per_epoch,
               desc=desc, unit="step", dynamic_ncols=True) as bar:
       for epoch in range(done, num_epochs):
@@ -183,7 +182,7 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
         bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
         line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
                 "seconds": round(time.perf_counter() - start, 4), **summary}
-        with open(workdir / "metrics.jsonl", "a") as f:
+        with open(workdir / runs.METRICS, "a") as f:
           f.write(json.dumps(line) + "\n")
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
           ckpts.save(epoch + 1, state, run_meta)
@@ -206,12 +205,8 @@ def load_latest(workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State
     CheckpointMismatchError: no complete checkpoint, another fingerprint, other shapes, or
       a corrupt checkpoint.
   """
-  root = Path(workdir) / "checkpoints"
-  ckpts = checkpointing.Checkpoints(root, writable=False)
-  if ckpts.latest_step is None:
-    raise CheckpointMismatchError(f"no complete checkpoint under {root}")
-  state, saved = ckpts.load(ckpts.latest_step, _abstract_state(init_fn, sharding.data_mesh()))
+  root = Path(workdir) / runs.CHECKPOINTS
+  state, saved = checkpointing.load_latest(root, _abstract_state(init_fn, sharding.data_mesh()))
   if fingerprint is not None:
-    checkpointing.check_metadata(saved.get("fingerprint"), fingerprint,
-                                 str(root / str(ckpts.latest_step)))
+    checkpointing.check_metadata(saved.get("fingerprint"), fingerprint, str(root))
   return state, saved.get("fingerprint")

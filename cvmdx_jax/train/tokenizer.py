@@ -1,19 +1,17 @@
-"""Training and inference of the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head).
+"""Training of the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head).
 
 `train_and_evaluate(config, workdir)` trains on the "train" split with the shared loop
 (`cvmdx_jax.train.loop`), logs per epoch the loss terms and, over the whole training
 split, entries in use, perplexity and classifier accuracy; then fits the per-entry
 Gaussians on the training latents and saves tokens q, latents z_hat and delta of every
 split under `<workdir>/tokens/` (`cvmdx_jax.tokens`), plus `<workdir>/tokenizer.json`
-(model settings, fingerprint) for `load_tokenizer`.
+(model settings, fingerprint) for `cvmdx_jax.runs.load_tokenizer`.
 
 The train state is a plain pytree: {"step", "params" (pure dict of the NNX Params),
 "opt_state", "usage" (Q,) running codebook usage}.
 """
 
-import dataclasses
 import hashlib
-import json
 import os
 from pathlib import Path
 
@@ -22,58 +20,29 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-from flax import nnx
 
-from cvmdx_jax import atomic, checkpointing, scenario_norm, tokens as tokens_lib, uncertainty
+from cvmdx_jax import runs, tokens as tokens_lib
+from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models import tokenizer as tokenizer_lib
-from cvmdx_jax.models.scenario_encoder import EncoderConfig
+from cvmdx_jax.models import uncertainty
 from cvmdx_jax.train import loop
-
-CONFIG_NAME = "tokenizer.json"
 
 
 def model_config(config: ml_collections.ConfigDict) -> tokenizer_lib.TokenizerConfig:
-  """Static model settings from the run config (raises ValueError on bad values)."""
-  return tokenizer_lib.TokenizerConfig(
-      encoder=EncoderConfig(latent_dim=config.latent_dim, channels=tuple(config.channels),
-                            kernel_size=config.kernel_size),
-      quantizer=quantizer_lib.QuantizerConfig(
-          kind=config.quantizer, codebook_size=config.codebook_size,
-          latent_dim=config.latent_dim, beta=config.beta, usage_decay=config.usage_decay,
-          revive_strength=config.revive_strength),
-      cls_weight=config.cls_weight, ego_weight=config.ego_weight)
-
-
-def _model_config_from_json(d: dict) -> tokenizer_lib.TokenizerConfig:
-  enc = {**d["encoder"], "channels": tuple(d["encoder"]["channels"])}
-  return tokenizer_lib.TokenizerConfig(EncoderConfig(**enc),
-                                       quantizer_lib.QuantizerConfig(**d["quantizer"]),
-                                       d["cls_weight"], d["ego_weight"])
-
-
-def fingerprint(model_cfg: tokenizer_lib.TokenizerConfig, dataset_id: str) -> dict:
-  """Identity of a tokeniser run, stored with its checkpoints and outputs."""
-  return {"model": dataclasses.asdict(model_cfg), "dataset_id": dataset_id,
-          "codebook_size": model_cfg.quantizer.codebook_size,
-          "latent_dim": model_cfg.encoder.latent_dim,
-          "xi_normalisation": {"offset": scenario_norm.XI_OFFSET.tolist(),
-                               "scale": scenario_norm.XI_SCALE.tolist()}}
-
-
-def make_graphdef(model_cfg: tokenizer_lib.TokenizerConfig) -> nnx.GraphDef:
-  """The NNX graph definition of the tokeniser (no parameters are allocated)."""
-  abstract = nnx.eval_shape(lambda: tokenizer_lib.Tokenizer(model_cfg, rngs=nnx.Rngs(0)))
-  return nnx.split(abstract, nnx.Param)[0]
+  """Static model settings from the run config's `model` and `quantizer` sections
+  (raises ValueError on bad values)."""
+  quantizer = to_dataclass(quantizer_lib.QuantizerConfig, config.quantizer,
+                           latent_dim=config.model.encoder.latent_dim)
+  return to_dataclass(tokenizer_lib.TokenizerConfig, config.model, quantizer=quantizer)
 
 
 def make_init_fn(model_cfg, tx):
   """`init_fn(key) -> state` for the shared loop."""
   def init_fn(key):
-    model = tokenizer_lib.Tokenizer(model_cfg, rngs=nnx.Rngs(params=key))
-    params = nnx.to_pure_dict(nnx.split(model, nnx.Param)[1])
+    _, params = tokenizer_lib.init_tokenizer(model_cfg, key)
     return {"step": jnp.zeros((), jnp.int32), "params": params,
             "opt_state": tx.init(params), "usage": quantizer_lib.init_usage(model_cfg.quantizer)}
   return init_fn
@@ -87,7 +56,7 @@ def make_step_fn(graphdef, model_cfg, tx):
   """
   def step_fn(state, batch, key):
     def loss_of(params):
-      return tokenizer_lib.loss_fn(nnx.merge(graphdef, params), batch, model_cfg)
+      return tokenizer_lib.loss_fn(graphdef, params, batch, model_cfg)
 
     (loss, (metrics, out)), grads = jax.value_and_grad(loss_of, has_aux=True)(state["params"])
     updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
@@ -105,27 +74,9 @@ def make_step_fn(graphdef, model_cfg, tx):
 
 
 def optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
-  """Adam with global-norm clipping."""
-  return optax.chain(optax.clip_by_global_norm(config.grad_clip),
-                     optax.adam(config.learning_rate))
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class TokenizerBundle:
-  """A trained tokeniser for inference (a pytree; graphdef and config are static).
-
-  Attributes:
-    params: pure dict of the model parameters.
-    gaussians: the per-entry Gaussians for delta.
-    graphdef: the NNX graph definition.
-    config: the static model settings.
-  """
-
-  params: dict
-  gaussians: uncertainty.Gaussians
-  graphdef: nnx.GraphDef = dataclasses.field(metadata={"static": True})
-  config: tokenizer_lib.TokenizerConfig = dataclasses.field(metadata={"static": True})
+  """Adam with global-norm clipping (`config.train`)."""
+  return optax.chain(optax.clip_by_global_norm(config.train.grad_clip),
+                     optax.adam(config.train.learning_rate))
 
 
 def encode(graphdef, params, xi, mask, chunk: int = 512):
@@ -140,31 +91,12 @@ def encode(graphdef, params, xi, mask, chunk: int = 512):
     (z_hat (M, D), q (M,) int32, logits (M, 3)).
   """
   def one(x):
-    model = nnx.merge(graphdef, params)
-    z_hat = model.encode(x[0][None], x[1][None])[0]
-    q = quantizer_lib.nearest(model.codebook[...], z_hat[None])[0]
-    return z_hat, q, model.classifier(model.codebook[...][q])
+    z_hat, q = tokenizer_lib.encode(graphdef, params, x[0][None], x[1][None])
+    return z_hat[0], q[0], tokenizer_lib.classify(graphdef, params, q[0])
   return jax.lax.map(one, (jnp.asarray(xi), jnp.asarray(mask)), batch_size=chunk)
 
 
 _encode_jit = jax.jit(encode, static_argnums=(0, 4))
-
-
-def tokenize(bundle: TokenizerBundle, xi: jax.Array, mask: jax.Array):
-  """Tokens of B scenarios (jittable).
-
-  Args:
-    bundle: from `load_tokenizer`.
-    xi: (B, 9, 75, 4) physical scenarios [x m, y m, v_x m/s, v_y m/s].
-    mask: (B, 9, 75) bool.
-
-  Returns:
-    (q (B,) int32, z_hat (B, D) float32, delta (B,) float32).
-  """
-  model = nnx.merge(bundle.graphdef, bundle.params)
-  z_hat = model.encode(xi, mask)
-  q = quantizer_lib.nearest(model.codebook[...], z_hat)
-  return q, z_hat, uncertainty.mahalanobis(z_hat, q, bundle.gaussians)
 
 
 def _content_id(splits: dict[str, Scenarios]) -> str:
@@ -178,17 +110,6 @@ def _content_id(splits: dict[str, Scenarios]) -> str:
 def _load_splits(config) -> tuple[dict[str, Scenarios], str]:
   splits = {s: dataset_lib.load_split(config.data_dir, s) for s in config.splits}
   return splits, dataset_lib.dataset_id(config.data_dir)
-
-
-def _claim_workdir(workdir: Path, run: dict) -> None:
-  """Writes <workdir>/tokenizer.json, or checks that an existing one has our fingerprint
-  (so another Q / latent size / dataset is refused naming the differing keys)."""
-  path = workdir / CONFIG_NAME
-  if path.is_file():
-    checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], run["fingerprint"],
-                                 str(workdir))
-  workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(path, run, indent=1, sort_keys=True)
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike, *,
@@ -216,11 +137,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
     s.validate(source=f"{config.get('data_dir', '<given>')}/{name}")
   train = splits["train"]
   tx = optimizer(config)
-  graphdef = make_graphdef(model_cfg)
-  fp = fingerprint(model_cfg, dataset_id)
-  _claim_workdir(Path(workdir), {"model": dataclasses.asdict(model_cfg), "fingerprint": fp,
-                                 "optimizer_lr": config.learning_rate,
-                                 "grad_clip": config.grad_clip})
+  graphdef = tokenizer_lib.make_graphdef(model_cfg)
+  fp = runs.tokenizer_fingerprint(model_cfg, dataset_id)
+  runs.claim_tokenizer_dir(workdir, model_cfg, fp)
   xi_train, mask_train = jnp.asarray(train.xi), jnp.asarray(train.mask)
 
   def epoch_end_fn(state, epoch):
@@ -235,8 +154,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       workdir=workdir, init_fn=make_init_fn(model_cfg, tx),
       step_fn=make_step_fn(graphdef, model_cfg, tx),
       data={"xi": train.xi, "mask": train.mask, "label": train.label},
-      batch_size=config.batch_size, num_epochs=config.num_epochs, seed=config.seed,
-      fingerprint=fp, checkpoint_every=config.checkpoint_every, keep=config.keep,
+      batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
+      seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep,
       epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}")
 
   workdir = Path(workdir)
@@ -250,9 +170,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
              for name, s in splits.items()}
   z_train, q_train, _ = encoded["train"]
   gaussians = uncertainty.fit_gaussians(z_train, q_train, state["params"]["codebook"],
-                                        shrinkage=config.shrinkage, ridge=config.ridge)
-  tokens_lib.save_gaussians(workdir / "tokens" / f"{tokens_lib.GAUSSIANS_NAME}.npz",
-                            gaussians, meta)
+                                        shrinkage=config.uncertainty.shrinkage,
+                                        ridge=config.uncertainty.ridge)
+  tokens_lib.save_gaussians(tokens_lib.gaussians_path(workdir), gaussians, meta)
   for name, (z_hat, q, _) in encoded.items():
     delta = uncertainty.mahalanobis(z_hat, q, gaussians)
     tokens_lib.save_tokens(tokens_lib.tokens_path(workdir, name),
@@ -260,30 +180,3 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
                            {**meta, "split": name})
   return state
 
-
-def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
-  """The trained tokeniser of `workdir` for inference.
-
-  Raises:
-    FileNotFoundError: the workdir holds no tokeniser run (no tokenizer.json) or its
-      outputs are missing (the run has not finished).
-    CheckpointMismatchError: the checkpoint does not match the run's settings.
-    tokens.TokensMismatchError: the saved Gaussians belong to another checkpoint.
-  """
-  workdir = Path(workdir)
-  path = workdir / CONFIG_NAME
-  if not path.is_file():
-    raise FileNotFoundError(f"{path}: missing; train the tokeniser with this workdir first")
-  saved = json.loads(path.read_text())
-  model_cfg = _model_config_from_json(saved["model"])
-  init_fn = make_init_fn(model_cfg, optax.chain(optax.clip_by_global_norm(saved["grad_clip"]),
-                                                optax.adam(saved["optimizer_lr"])))
-  state, _ = loop.load_latest(workdir, init_fn, saved["fingerprint"])
-  gpath = workdir / "tokens" / f"{tokens_lib.GAUSSIANS_NAME}.npz"
-  gaussians, gmeta = tokens_lib.load_gaussians(gpath)
-  if gmeta["checkpoint"]["step"] != int(state["step"]):
-    raise tokens_lib.TokensMismatchError(
-        f"{gpath}: Gaussians fitted at step {gmeta['checkpoint']['step']}, the checkpoint "
-        f"is at step {int(state['step'])}; rerun train_and_evaluate")
-  gaussians = jax.tree.map(jnp.asarray, gaussians)
-  return TokenizerBundle(state["params"], gaussians, make_graphdef(model_cfg), model_cfg)

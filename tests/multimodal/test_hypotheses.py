@@ -1,14 +1,16 @@
 """fit_hypotheses: output contract, sklearn agreement, mode recovery."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
 
-from cvmdx_jax.multimodal import fit_hypotheses
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import reference
+
+fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 
 
 @pytest.fixture(scope="module")

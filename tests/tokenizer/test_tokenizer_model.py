@@ -3,10 +3,9 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import nnx
 
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import scenario_norm
+from cvmdx_jax.models import scenario_norm
 from cvmdx_jax.models import tokenizer as tok
 from cvmdx_jax.train import tokenizer as train_tok
 
@@ -21,12 +20,13 @@ def test_normalisation_hand_values_and_mask():
                              rtol=1e-6)
 
 
-_loss = jax.jit(tok.loss_fn, static_argnums=2)
+_loss = jax.jit(lambda model, batch, cfg: tok.loss_fn(*model, batch, cfg), static_argnums=2)
 
 
 def _model(seed=0):
   cfg = train_tok.model_config(tokenizer_config.get_config("tiny"))
-  return cfg, tok.Tokenizer(cfg, rngs=nnx.Rngs(seed))
+  graphdef, params = tok.init_tokenizer(cfg, jax.random.key(seed))
+  return cfg, (graphdef, params)
 
 
 def test_loss_ignores_padding_rows_and_absent_vehicles(scenarios_factory):
@@ -75,10 +75,10 @@ def test_reconstruction_weighs_the_ego_by_ego_weight(scenarios_factory):
 
 def test_classifier_beats_chance_on_separable_toy_set(scenarios_factory):
   config = tokenizer_config.get_config("tiny")
-  config.codebook_size = 16
+  config.quantizer.codebook_size = 16
   cfg = train_tok.model_config(config)
   tx = train_tok.optimizer(config)
-  graphdef = train_tok.make_graphdef(cfg)
+  graphdef = tok.make_graphdef(cfg)
   state = train_tok.make_init_fn(cfg, tx)(jax.random.key(0))
   step = jax.jit(train_tok.make_step_fn(graphdef, cfg, tx))
   s = scenarios_factory(96)

@@ -1,4 +1,4 @@
-"""train_and_evaluate smoke run, load_tokenizer/tokenize, saved tokens, mismatch errors."""
+"""train_and_evaluate smoke run, runs.load_tokenizer/tokenize, saved tokens, mismatch errors."""
 
 import json
 
@@ -9,7 +9,7 @@ import scipy.stats
 
 from configs import common
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import tokens as tokens_lib
+from cvmdx_jax import runs, tokens as tokens_lib
 from cvmdx_jax.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import tokenizer as train_tok
 
@@ -18,7 +18,7 @@ from cvmdx_jax.train import tokenizer as train_tok
 def trained(tmp_path_factory, scenarios_factory):
   workdir = tmp_path_factory.mktemp("tok")
   config = tokenizer_config.get_config("tiny")
-  config.num_epochs = 2
+  config.train.num_epochs = 2
   splits = {"train": scenarios_factory(24, 0), "test": scenarios_factory(10, 1)}
   train_tok.train_and_evaluate(config, workdir, splits=splits)
   return workdir, config, splits
@@ -36,16 +36,16 @@ def test_smoke_run_writes_metrics_and_tokens(trained):
   assert lines[-1]["entries_in_use"] == len(np.unique(q))
   np.testing.assert_allclose(lines[-1]["perplexity"],
                              np.exp(scipy.stats.entropy(np.bincount(q))), rtol=1e-4)
-  assert meta["split"] == "train" and meta["codebook_size"] == config.codebook_size
-  assert train_tokens.z_hat.shape == (24, config.latent_dim)
+  assert meta["split"] == "train" and meta["codebook_size"] == config.quantizer.codebook_size
+  assert train_tokens.z_hat.shape == (24, config.model.encoder.latent_dim)
   assert np.all(train_tokens.delta >= 0)
 
 
 def test_load_tokenizer_reproduces_saved_tokens(trained):
   workdir, _, splits = trained
-  bundle = train_tok.load_tokenizer(workdir)
+  bundle = runs.load_tokenizer(workdir)
   test = splits["test"]
-  q, z_hat, delta = jax.jit(train_tok.tokenize)(bundle, test.xi, test.mask)
+  q, z_hat, delta = jax.jit(runs.TokenizerBundle.tokenize)(bundle, test.xi, test.mask)
   saved, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(workdir, "test"))
   np.testing.assert_array_equal(q, saved.q)
   np.testing.assert_allclose(z_hat, saved.z_hat, atol=1e-5)
@@ -66,7 +66,7 @@ def test_tokens_from_another_dataset_are_refused(trained):
 def test_checkpoint_with_other_codebook_size_is_refused(trained):
   workdir, config, splits = trained
   other = tokenizer_config.get_config("tiny")
-  other.codebook_size = config.codebook_size + 1
+  other.quantizer.codebook_size = config.quantizer.codebook_size + 1
   with pytest.raises(CheckpointMismatchError, match="codebook_size"):
     train_tok.train_and_evaluate(other, workdir, splits=splits)
 
@@ -80,7 +80,7 @@ def test_bad_dataset_and_missing_files_give_clear_errors(trained, tmp_path):
   with pytest.raises(ValueError, match="lack 'train'"):
     train_tok.train_and_evaluate(config, tmp_path / "bad", splits={"test": splits["test"]})
   with pytest.raises(FileNotFoundError, match="tokenizer.json"):
-    train_tok.load_tokenizer(tmp_path)
+    runs.load_tokenizer(tmp_path)
   broken = tmp_path / "broken.npz"
   broken.write_bytes(b"not a zip")
   with pytest.raises(ValueError, match="broken.npz"):
@@ -97,8 +97,8 @@ def test_parse_arg_and_presets():
   with pytest.raises(ValueError, match="needs a value"):
     common.parse_arg("q", q=0)
   config = tokenizer_config.get_config("q=90,quantizer=vq")
-  assert config.codebook_size == 90 and config.quantizer == "vq"
-  assert tokenizer_config.get_config("paper").learning_rate == 4.5e-6
-  assert tokenizer_config.get_config(None).batch_size == 64
+  assert config.quantizer.codebook_size == 90 and config.quantizer.kind == "vq"
+  assert tokenizer_config.get_config("paper").train.learning_rate == 4.5e-6
+  assert tokenizer_config.get_config(None).train.batch_size == 64
   with pytest.raises(ValueError, match="quantizer kind 'xq'"):
     train_tok.model_config(tokenizer_config.get_config("quantizer=xq"))

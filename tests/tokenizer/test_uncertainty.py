@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import scipy.spatial.distance
 
-from cvmdx_jax import uncertainty
+from cvmdx_jax.models import uncertainty
 
 
 def _fixture(seed=0):

@@ -21,25 +21,28 @@ from cvmdx_jax.train import loop
 from tests.train import toy
 
 
-def _task(name: str, m: int):
+def task(name: str, m: int):
   """(init_fn, step_fn, data) of a task."""
   if name == "toy":
     return (*toy.make_task(), toy.make_data(m))
   rng = np.random.default_rng(0)
   if name == "diffusion":
     from configs import diffusion as diffusion_config
+    from cvmdx_jax.config_dataclass import to_dataclass
+    from cvmdx_jax.models import unet1d
     from cvmdx_jax.train import diffusion
     config = diffusion_config.get_config("tiny")
-    cfg = diffusion.unet_config(config, num_tokens=4)
+    cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=4)
     _, init_fn, step_fn = diffusion.init_and_step(config, cfg, total_steps=100)
     data = {"x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
             "q": rng.integers(0, 4, m).astype(np.int32)}
     return init_fn, step_fn, data
   from configs import tokenizer as tokenizer_config
+  from cvmdx_jax.models import tokenizer as tokenizer_lib
   from cvmdx_jax.train import tokenizer
   model_cfg = tokenizer.model_config(tokenizer_config.get_config("tiny"))
   tx = tokenizer.optimizer(tokenizer_config.get_config("tiny"))
-  graphdef = tokenizer.make_graphdef(model_cfg)
+  graphdef = tokenizer_lib.make_graphdef(model_cfg)
   data = {"xi": rng.normal(0, [20, 2, 30, 0.3], (m, 9, 75, 4)).astype(np.float32),
           "mask": rng.uniform(size=(m, 9, 75)) < 0.8, "label": rng.integers(0, 3, m)}
   return (tokenizer.make_init_fn(model_cfg, tx), tokenizer.make_step_fn(graphdef, model_cfg, tx),
@@ -56,7 +59,7 @@ def main() -> int:
   p.add_argument("--task", default="toy", choices=("toy", "diffusion", "tokenizer"))
   p.add_argument("--sleep", type=float, default=0.0, help="seconds to idle after each epoch")
   a = p.parse_args()
-  init_fn, step_fn, data = _task(a.task, a.m)
+  init_fn, step_fn, data = task(a.task, a.m)
 
   def epoch_end(state, epoch):
     print(f"epoch {epoch}", flush=True)

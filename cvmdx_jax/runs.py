@@ -1,0 +1,248 @@
+"""Run directories: their file names, fingerprints, writers, and the inference loaders.
+
+A tokeniser run (`cvmdx_jax.train.tokenizer`):
+
+    <dir>/tokenizer.json         {"model": TokenizerConfig fields, "fingerprint": ...}
+    <dir>/checkpoints/<epoch>/   train state {"step", "params", "opt_state", "usage"}
+    <dir>/metrics.jsonl          one JSON line per epoch
+    <dir>/tokens/                tokens per split and the per-entry Gaussians (`tokens`)
+
+A diffusion run (`cvmdx_jax.train.diffusion`):
+
+    <dir>/config.json            the run's ConfigDict (sampling defaults, data, tokeniser)
+    <dir>/model.json             {"unet": UNetConfig fields}
+    <dir>/checkpoints/<epoch>/   train state {"step", "params", "ema_params", "opt_state"}
+    <dir>/metrics.jsonl
+
+`load_tokenizer` and `load_denoiser` restore only what inference needs (the tokeniser's
+parameters and step, the denoiser's EMA parameters) into an abstract tree built from the
+saved model config: no optimiser and no trainer code is involved (this module imports
+nothing from `cvmdx_jax.train`). Diffusion runs written before parameters were pure
+dicts (leaves `<path>/value`) still load.
+"""
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+from flax import nnx
+
+from cvmdx_jax import atomic, checkpointing, sharding, tokens
+from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.models import scenario_norm, unet1d, uncertainty
+from cvmdx_jax.models import tokenizer as tokenizer_lib
+
+CHECKPOINTS = "checkpoints"  # orbax step directories (`cvmdx_jax.checkpointing`)
+METRICS = "metrics.jsonl"
+TOKENIZER_JSON = "tokenizer.json"
+CONFIG_JSON = "config.json"
+MODEL_JSON = "model.json"
+
+
+def tokenizer_fingerprint(model_cfg: tokenizer_lib.TokenizerConfig, dataset_id: str) -> dict:
+  """Identity of a tokeniser run, stored with its checkpoints and outputs."""
+  return {"model": dataclasses.asdict(model_cfg), "dataset_id": dataset_id,
+          "codebook_size": model_cfg.quantizer.codebook_size,
+          "latent_dim": model_cfg.encoder.latent_dim,
+          "xi_normalisation": {"offset": scenario_norm.XI_OFFSET.tolist(),
+                               "scale": scenario_norm.XI_SCALE.tolist()}}
+
+
+def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetConfig,
+                          dataset_id: str, tokens_meta: dict) -> dict:
+  """What a denoiser checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
+  checkpoint = tokens_meta.get("checkpoint", {})
+  return {"model": dataclasses.asdict(unet), "num_diffusion_steps": config.diffusion.num_steps,
+          "control_scale": list(config.diffusion.control_scale),
+          "dataset_id": dataset_id,
+          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
+                        "step": checkpoint.get("step")}}
+
+
+def sampling_config(config) -> SamplingConfig:
+  """The `SamplingConfig` of a diffusion run's config (`config.sampling`, control scale)."""
+  clip = config.sampling.clip_x0
+  return to_dataclass(SamplingConfig, config.sampling, clip_x0=clip if clip > 0 else None,
+                      control_scale=config.diffusion.control_scale)
+
+
+def claim_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.TokenizerConfig,
+                        fingerprint: dict) -> None:
+  """Writes <workdir>/tokenizer.json, or checks that an existing one has `fingerprint`
+  (so another Q / latent size / dataset is refused naming the differing keys).
+
+  Raises:
+    CheckpointMismatchError: the directory holds a tokeniser run of another fingerprint.
+  """
+  workdir = Path(workdir)
+  path = workdir / TOKENIZER_JSON
+  if path.is_file():
+    checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], fingerprint,
+                                 str(workdir))
+  workdir.mkdir(parents=True, exist_ok=True)
+  atomic.write_json(path, {"model": dataclasses.asdict(model_cfg), "fingerprint": fingerprint},
+                    indent=1, sort_keys=True)
+
+
+def write_diffusion_dir(workdir: str | os.PathLike, config: ml_collections.ConfigDict,
+                        unet: unet1d.UNetConfig) -> None:
+  """Writes <workdir>/config.json (the run's config) and model.json (the U-Net config)."""
+  workdir = Path(workdir)
+  workdir.mkdir(parents=True, exist_ok=True)
+  atomic.write_json(workdir / CONFIG_JSON, json.loads(config.to_json_best_effort()))
+  atomic.write_json(workdir / MODEL_JSON, {"unet": dataclasses.asdict(unet)})
+
+
+def _static():
+  return dataclasses.field(metadata={"static": True})
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TokenizerBundle:
+  """A trained tokeniser for inference (a pytree: only `params` and `gaussians` are leaves).
+
+  Attributes:
+    params: pure dict of the model parameters.
+    gaussians: the per-entry Gaussians for delta.
+    graphdef: the NNX graph definition.
+    config: the static model settings.
+    fingerprint: the run's fingerprint (`tokenizer_fingerprint`).
+  """
+
+  params: dict
+  gaussians: uncertainty.Gaussians
+  graphdef: nnx.GraphDef = _static()
+  config: tokenizer_lib.TokenizerConfig = _static()
+  fingerprint: ml_collections.FrozenConfigDict = _static()
+
+  def tokenize(self, xi: jax.Array, mask: jax.Array):
+    """Tokens of B scenarios (jittable).
+
+    Args:
+      xi: (B, 9, 75, 4) physical scenarios [x m, y m, v_x m/s, v_y m/s].
+      mask: (B, 9, 75) bool.
+
+    Returns:
+      (q (B,) int32, z_hat (B, D) float32, delta (B,) float32).
+    """
+    z_hat, q = tokenizer_lib.encode(self.graphdef, self.params, xi, mask)
+    return q, z_hat, uncertainty.mahalanobis(z_hat, q, self.gaussians)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Denoiser:
+  """A trained denoiser v_theta for inference (a pytree: only `params` are leaves).
+
+  Attributes:
+    params: the EMA parameters (pure dict).
+    graphdef: U-Net graph definition.
+    unet: `UNetConfig`.
+    config: the run's config (sampling defaults, diffusion steps, data and tokeniser dirs).
+    fingerprint: what the checkpoint was trained on (`diffusion_fingerprint`).
+  """
+
+  params: dict
+  graphdef: nnx.GraphDef = _static()
+  unet: unet1d.UNetConfig = _static()
+  config: ml_collections.FrozenConfigDict = _static()
+  fingerprint: ml_collections.FrozenConfigDict = _static()
+
+  @property
+  def null_token(self) -> int:
+    """The unconditional token (Q)."""
+    return self.unet.null_token
+
+  def apply(self, x: jax.Array, t: jax.Array, q: jax.Array) -> jax.Array:
+    """v (B, 125, 2) of normalised controls x (B, 125, 2) at steps t (B,) for tokens q (B,)."""
+    return unet1d.apply_unet(self.graphdef, self.params, x, t, q)
+
+
+def _abstract(init, model_cfg) -> dict:
+  """ShapeDtypeStructs of `init(model_cfg, key)`'s parameters (nothing is allocated)."""
+  return jax.eval_shape(lambda key: init(model_cfg, key)[1], jax.random.key(0))
+
+
+def _restore(workdir: Path, abstract: dict) -> tuple[dict, dict]:
+  """(the leaves of `abstract` from the latest checkpoint, the saved fingerprint)."""
+  rep = sharding.replicated(sharding.data_mesh())
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
+                          abstract)
+  tree, saved = checkpointing.load_latest(workdir / CHECKPOINTS, abstract, partial=True)
+  return tree, saved.get("fingerprint")
+
+
+def _read_json(path: Path, what: str) -> dict:
+  try:
+    return json.loads(path.read_text())
+  except (OSError, ValueError) as e:
+    raise FileNotFoundError(f"{path}: missing or unreadable; not a {what} run directory "
+                            f"({e})") from e
+
+
+def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
+  """The trained tokeniser of `workdir` for inference.
+
+  Raises:
+    FileNotFoundError: the workdir holds no tokeniser run (no tokenizer.json) or its
+      outputs are missing (the run has not finished).
+    CheckpointMismatchError: the checkpoint does not match the run's settings.
+    tokens.TokensMismatchError: the saved Gaussians belong to another checkpoint.
+  """
+  workdir = Path(workdir)
+  path = workdir / TOKENIZER_JSON
+  if not path.is_file():
+    raise FileNotFoundError(f"{path}: missing; train the tokeniser with this workdir first")
+  saved = _read_json(path, "tokeniser")
+  model_cfg = to_dataclass(tokenizer_lib.TokenizerConfig, saved["model"])
+  abstract = {"params": _abstract(tokenizer_lib.init_tokenizer, model_cfg),
+              "step": jax.ShapeDtypeStruct((), jnp.int32)}
+  state, fingerprint = _restore(workdir, abstract)
+  checkpointing.check_metadata(fingerprint, saved["fingerprint"], str(workdir / CHECKPOINTS))
+  gpath = tokens.gaussians_path(workdir)
+  gaussians, gmeta = tokens.load_gaussians(gpath)
+  if gmeta["checkpoint"]["step"] != int(state["step"]):
+    raise tokens.TokensMismatchError(
+        f"{gpath}: Gaussians fitted at step {gmeta['checkpoint']['step']}, the checkpoint "
+        f"is at step {int(state['step'])}; rerun train_and_evaluate")
+  return TokenizerBundle(state["params"], jax.tree.map(jnp.asarray, gaussians),
+                         tokenizer_lib.make_graphdef(model_cfg), model_cfg,
+                         ml_collections.FrozenConfigDict(saved["fingerprint"]))
+
+
+def _restore_ema(workdir: Path, abstract: dict) -> tuple[dict, dict]:
+  """(EMA params, fingerprint); also from runs that saved nnx.State leaves (`<path>/value`)."""
+  try:
+    tree, fingerprint = _restore(workdir, {"ema_params": abstract})
+    return tree["ema_params"], fingerprint
+  except CheckpointMismatchError as error:
+    wrapped = jax.tree.map(lambda x: {"value": x}, abstract)
+    try:
+      tree, fingerprint = _restore(workdir, {"ema_params": wrapped})
+    except CheckpointMismatchError:
+      raise error from None
+  is_wrapped = lambda d: isinstance(d, dict) and set(d) == {"value"}
+  return jax.tree.map(lambda d: d["value"], tree["ema_params"], is_leaf=is_wrapped), fingerprint
+
+
+def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
+  """The EMA denoiser of the latest checkpoint of a diffusion run, for inference.
+
+  Raises:
+    FileNotFoundError: no config.json / model.json (not a diffusion run directory).
+    CheckpointMismatchError: no complete checkpoint, or one of another model size.
+  """
+  workdir = Path(workdir)
+  config = _read_json(workdir / CONFIG_JSON, "diffusion")
+  unet = to_dataclass(unet1d.UNetConfig, _read_json(workdir / MODEL_JSON, "diffusion")["unet"])
+  params, fingerprint = _restore_ema(workdir, _abstract(unet1d.init_unet, unet))
+  return Denoiser(params, unet1d.make_graphdef(unet), unet,
+                  ml_collections.FrozenConfigDict(config),
+                  ml_collections.FrozenConfigDict(fingerprint or {}))

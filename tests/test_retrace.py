@@ -1,0 +1,85 @@
+"""Retrace guards: the predict path and both training steps compile once per shape.
+
+Each guard counts how often the traced Python body runs (a side effect that happens
+only while jax traces), so a change that makes a static argument unhashable-by-value,
+passes a Python scalar as static or rebuilds a jitted function per call shows up as
+extra traces.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import pytest
+
+from configs import diffusion as diffusion_config
+from configs import tokenizer as tokenizer_config
+from cvmdx_jax import constants, predict, runs
+from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax.data import from_arrays
+from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.models import tokenizer as tokenizer_lib
+from cvmdx_jax.models import unet1d, uncertainty
+from cvmdx_jax.train import loop
+from cvmdx_jax.train import tokenizer as tokenizer_train
+from tests.train.toy_job import task
+
+
+def _counting(fn, counter: list):
+  def wrapped(*args, **kwargs):
+    counter.append(1)
+    return fn(*args, **kwargs)
+  return wrapped
+
+
+def _random_predictor(chunk_size: int) -> predict.Predictor:
+  """A Predictor of untrained :tiny models (the weights do not matter for tracing)."""
+  tok_cfg = tokenizer_train.model_config(tokenizer_config.get_config("tiny"))
+  tok_graphdef, tok_params = tokenizer_lib.init_tokenizer(tok_cfg, jax.random.key(0))
+  q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
+  eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
+  gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
+  tokenizer = runs.TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
+                                   ml_collections.FrozenConfigDict({"dataset_id": "none"}))
+  config = diffusion_config.get_config("tiny")
+  unet = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=q)
+  graphdef, params = unet1d.init_unet(unet, jax.random.key(1))
+  denoiser = runs.Denoiser(params, graphdef, unet, ml_collections.FrozenConfigDict(config),
+                           ml_collections.FrozenConfigDict({}))
+  sampling = SamplingConfig(num_samples=3, steps=2)
+  return predict.Predictor(tokenizer, denoiser, sampling, chunk_size=chunk_size)
+
+
+def _scenarios(m: int):
+  rng = np.random.default_rng(0)
+  xi = rng.normal(0.0, 1.0, (m, constants.NUM_VEHICLES, constants.T_OBS, 4))
+  zeros = np.zeros((m, constants.T_PRED, 2))
+  return from_arrays(xi=xi, mask=np.ones(xi.shape[:3], bool), future=zeros, controls=zeros,
+                     v0=np.full(m, 30.0), psi0=np.zeros(m), label=np.arange(m) % 3)
+
+
+def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
+  traces = []
+  monkeypatch.setattr(predict, "predict_batch", _counting(predict.predict_batch, traces))
+  predict._predict.clear_cache()
+  predictor = _random_predictor(chunk_size=4)
+  scenarios = _scenarios(6)  # chunks of 4 and 2 (padded to 4)
+  first = predictor(scenarios, seed=0)
+  predictor(scenarios, seed=1)
+  # a predictor rebuilt from the same runs (equal static fields) reuses the compilation
+  dataclasses.replace(predictor, sampling=SamplingConfig(num_samples=3, steps=2))(scenarios)
+  assert len(traces) == 1
+  assert first.prediction.trajectories.shape == (6, 3, 125, 2)
+  dataclasses.replace(predictor, chunk_size=2)(scenarios)  # another chunk shape: one more
+  assert len(traces) == 2
+
+
+@pytest.mark.parametrize("name", ["diffusion", "tokenizer"])
+def test_training_step_compiles_once(tmp_path, name):
+  init_fn, step_fn, data = task(name, 12)  # batch 8: one full and one padded batch an epoch
+  traces = []
+  loop.train(workdir=tmp_path, init_fn=init_fn, step_fn=_counting(step_fn, traces), data=data,
+             batch_size=8, num_epochs=2, seed=0, fingerprint={"task": name})
+  assert len(traces) == 1
