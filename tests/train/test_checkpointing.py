@@ -1,5 +1,7 @@
 """Tests of cvmdx_jax.checkpointing: round trips and the mismatch errors users see."""
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,6 +34,24 @@ def test_round_trip_keeps_structure_values_and_metadata(tmp_path):
   assert jax.tree.structure(restored) == jax.tree.structure(state)  # namedtuples survive
   for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state)):
     np.testing.assert_array_equal(a, b)
+
+
+def test_partial_load_reads_only_the_requested_leaves(tmp_path):
+  state = _state()
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    ckpts.save(1, state, {"q": 1})
+  absl_filters = list(logging.getLogger("absl").filters)
+  wanted = {"params": _abstract(state)["params"]}
+  restored, meta = checkpointing.load_latest(tmp_path, wanted, partial=True)
+  assert set(restored) == {"params"} and meta == {"q": 1}
+  np.testing.assert_array_equal(restored["params"]["w"], state["params"]["w"])
+  with pytest.raises(CheckpointMismatchError, match="'opt/0/count'.*not expected"):
+    checkpointing.load_latest(tmp_path, wanted)  # a full load wants every leaf
+  wider = {"params": _abstract(_state(4))["params"]}
+  with pytest.raises(CheckpointMismatchError, match=r"params/w.*\(2, 3\).*\(2, 4\)"):
+    checkpointing.load_latest(tmp_path, wider, partial=True)
+  # orbax's log filter is installed only while orbax runs
+  assert logging.getLogger("absl").filters == absl_filters
 
 
 def test_check_metadata_names_every_differing_key():
