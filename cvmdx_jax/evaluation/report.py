@@ -15,17 +15,10 @@ import numpy as np
 
 from cvmdx_jax import atomic, constants, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, scoring
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.predict import Predictor
-
-
-def _balanced_subset(labels, n: int, seed: int) -> np.ndarray:
-  """Up to n indices, as equal a share of each class as the split allows, sorted."""
-  rng = np.random.default_rng(seed)
-  per_class = [rng.permutation(np.flatnonzero(labels == c)) for c in range(constants.NUM_CLASSES)]
-  take = [c[: -(-n // constants.NUM_CLASSES)] for c in per_class]
-  return np.sort(np.concatenate(take))[:n] if n else np.zeros((0,), int)
 
 
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
@@ -51,7 +44,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   scenarios = dataset_lib.load_split(data_dir, split)
   predictor = Predictor.load(tokenizer_dir, diffusion_dir, sampling=sampling)
   if max_scenarios:
-    scenarios = scenarios.take(_balanced_subset(scenarios.label, max_scenarios, seed))
+    scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
@@ -62,7 +55,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
             **scoring.baseline_errors(scenarios)}
   results = scoring.summarise(errors, scenarios.label)
   if ddpm_scenarios:
-    idx = _balanced_subset(scenarios.label, ddpm_scenarios, seed)
+    idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
     single = dataclasses.replace(predictor.sampling, sampler="ddpm", num_samples=1,
                                  hypotheses=HypothesisConfig(c_max=1, pca_dim=1))
