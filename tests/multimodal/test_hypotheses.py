@@ -8,13 +8,14 @@ from scipy import stats
 from cvmdx_jax.multimodal import fit_hypotheses
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import reference
+from cvmdx_jax.multimodal import synthetic
+from tests.multimodal import oracle
 
 
 @pytest.fixture(scope="module")
 def sets():
   """(trajectories (B, 9, 125, 2), true num_modes, true mode ids) for 300 sets."""
-  return reference.mode_sets(seed=0, num_sets=300)
+  return synthetic.mode_sets(seed=0, num_sets=300)
 
 
 @pytest.fixture(scope="module")
@@ -64,14 +65,14 @@ def test_recovers_true_modes_and_partition(sets, hyps):
 
 @pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
 def test_selected_c_agrees_with_sklearn(sets, hyps):
-  want = reference.fit_batch(sets[0], HypothesisConfig()).argmin(axis=1) + 1
+  want = oracle.fit_batch(sets[0], HypothesisConfig()).argmin(axis=1) + 1
   assert np.mean(np.asarray(hyps.num_components) == want) >= 0.98
 
 
 def test_single_component_bic_is_closed_form_on_sklearn_pca_points(sets, hyps):
   config = HypothesisConfig()
   for i in range(10):
-    points = reference.embed(sets[0][i], config)
+    points = oracle.embed(sets[0][i], config)
     cov = np.cov(points.T, bias=True) + config.reg_covar * np.eye(2)
     log_like = stats.multivariate_normal(points.mean(axis=0), cov).logpdf(points).sum()
     want = -2 * log_like + 5 * np.log(9)
@@ -79,7 +80,7 @@ def test_single_component_bic_is_closed_form_on_sklearn_pca_points(sets, hyps):
 
 
 def test_minmax_with_small_floor_over_selects():
-  trajectories, num_modes, _ = reference.mode_sets(seed=1, num_sets=200)
+  trajectories, num_modes, _ = synthetic.mode_sets(seed=1, num_sets=200)
   physical = np.asarray(fit_hypotheses(trajectories).num_components)
   minmax = np.asarray(fit_hypotheses(
       trajectories, config=HypothesisConfig(scaling="minmax", reg_covar=9e-5)).num_components)
@@ -110,7 +111,7 @@ def test_degenerate_identical_samples():
 
 
 def test_c_max_and_bad_input():
-  trajectories = reference.mode_sets(seed=2, num_sets=4)[0]
+  trajectories = synthetic.mode_sets(seed=2, num_sets=4)[0]
   out = fit_hypotheses(trajectories, c_max=2)
   assert out.probs.shape == (4, 2) and out.bic.shape == (4, 2)
   with pytest.raises(ValueError, match="contradicts"):
