@@ -1,21 +1,102 @@
-"""Atomic file writes: write to a hidden temporary name beside the target, then rename,
-so a reader never sees a half-written file and an existing one survives a crash."""
+"""Atomic file writes, the one way every module of the package writes a file.
 
+`writing(path)` hands out a hidden temporary file beside `path`; when the block ends
+without an exception the temporary is renamed over `path` (`os.replace`, atomic on
+POSIX), otherwise it is removed. A reader therefore sees the old file or the new one,
+never a half-written one, and an existing file survives a crash or a failing writer.
+The temporary is created like a plain `open()` creates a file (mode 0o666 filtered by
+the process umask, e.g. 0o644 under umask 022), so results can be shared as usual.
+
+Format helpers: `write_bytes`, `write_text`, `write_json`, `write_jsonl`, `write_npz`,
+`write_mat`, `save_figure`; `append_jsonl` appends one line to a log.
+"""
+
+import contextlib
 import json
 import os
+import secrets
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import scipy.io
 
 
-def write_bytes(path, data: bytes) -> None:
+@contextlib.contextmanager
+def writing(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
+  """Opens a temporary beside `path` for writing; renames it over `path` on success.
+
+  Args:
+    path: the target file; its directory must exist.
+    mode: "wb" (binary) or "w" (text, UTF-8).
+
+  Yields:
+    The open temporary file.
+  """
+  if mode not in ("wb", "w"):
+    raise ValueError(f"atomic.writing: mode={mode!r}, expected 'wb' or 'w'")
   path = Path(path)
-  tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-  tmp.write_bytes(data)
-  os.replace(tmp, path)
+  tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+  # O_EXCL: never reuse a name; 0o666 & ~umask: what a plain open() would create.
+  fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+  try:
+    with os.fdopen(fd, mode, **({"encoding": "utf-8"} if mode == "w" else {})) as f:
+      yield f
+    os.replace(tmp, path)
+  except BaseException:
+    tmp.unlink(missing_ok=True)
+    raise
 
 
-def write_text(path, text: str) -> None:
-  write_bytes(path, text.encode())
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  with writing(path) as f:
+    f.write(data)
 
 
-def write_json(path, value, **kwargs) -> None:
+def write_text(path: str | os.PathLike, text: str) -> None:
+  with writing(path, "w") as f:
+    f.write(text)
+
+
+def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
+  """`value` as JSON (indent 2 unless `kwargs` say otherwise) and a final newline."""
   write_text(path, json.dumps(value, **{"indent": 2, **kwargs}) + "\n")
+
+
+def write_jsonl(path: str | os.PathLike, records: Iterable[Any]) -> None:
+  """Rewrites `path` with one compact JSON line per record."""
+  write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+
+
+def append_jsonl(path: str | os.PathLike, record: Any) -> None:
+  """Appends one JSON line to a log with a single `write` on an O_APPEND descriptor.
+
+  Earlier lines are never touched; a crash can at most leave the new line cut short,
+  which readers of the log skip (e.g. `train.loop` on resume, via `write_jsonl`).
+  """
+  data = (json.dumps(record) + "\n").encode()
+  fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+  try:
+    while data:
+      data = data[os.write(fd, data):]
+  finally:
+    os.close(fd)
+
+
+def write_npz(path: str | os.PathLike, **arrays) -> None:
+  """Arrays as an uncompressed .npz (`np.savez`)."""
+  with writing(path) as f:
+    np.savez(f, **arrays)
+
+
+def write_mat(path: str | os.PathLike, mat: dict) -> None:
+  """A dict of arrays as a MATLAB 5 .mat file (`scipy.io.savemat`)."""
+  with writing(path) as f:
+    scipy.io.savemat(f, mat)
+
+
+def save_figure(path: str | os.PathLike, fig, **kwargs) -> None:
+  """`fig.savefig` atomically; the format comes from the suffix of `path` (e.g. .png)."""
+  with writing(path) as f:
+    fig.savefig(f, format=Path(path).suffix.lstrip(".") or None, **kwargs)

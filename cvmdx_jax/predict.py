@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import checkpointing, constants, runs, sharding
+from cvmdx_jax import checkpointing, runs, sharding
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
@@ -60,22 +60,6 @@ def _predict(tokenizer: runs.TokenizerBundle, denoiser: runs.Denoiser, xi, mask,
   pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys,
                        schedule=schedule, null_token=denoiser.null_token, config=config)
   return pred, q, delta
-
-
-def check_scenarios(scenarios: Scenarios, source: str = "scenarios") -> None:
-  """Raises ValueError for wrong shapes or non-finite inputs of the fields the model reads."""
-  n, t, f = constants.NUM_VEHICLES, constants.T_OBS, constants.NUM_FEATURES
-  m = len(scenarios)
-  expected = {"xi": (m, n, t, f), "mask": (m, n, t), "v0": (m,), "psi0": (m,)}
-  for name, shape in expected.items():
-    value = np.asarray(getattr(scenarios, name))
-    if value.shape != shape:
-      raise ValueError(f"{source}: field '{name}' has shape {value.shape}, expected {shape}")
-    if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
-      bad = np.argwhere(~np.isfinite(value.reshape(m, -1)).all(-1))[0, 0]
-      raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
-  if m == 0:
-    raise ValueError(f"{source}: no scenarios")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,7 +108,7 @@ class Predictor:
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
     """Predicts every scenario; see the module docstring."""
-    check_scenarios(scenarios)
+    scenarios.validate(fields=("xi", "mask", "v0", "psi0"), dtypes=False, allow_empty=False)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
     m = len(scenarios)

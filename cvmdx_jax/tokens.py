@@ -9,20 +9,20 @@ can be tokenised by several tokenisers without them overwriting each other):
 
 Each file holds a JSON `metadata` string: dataset_id, data_dir, split, num_scenarios,
 codebook_size, latent_dim, quantizer and the tokeniser checkpoint (workdir, step,
-fingerprint). Files are written to a temporary name and renamed, so a reader never sees
-a half-written one. `load_tokens(..., dataset_id=...)` refuses tokens made from another
+fingerprint). Files are written with `atomic.write_npz`, so a reader never sees a
+half-written one. `load_tokens(..., dataset_id=...)` refuses tokens made from another
 dataset with `TokensMismatchError`.
 """
 
 import dataclasses
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from cvmdx_jax import atomic
 from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"
@@ -59,14 +59,7 @@ def gaussians_path(workdir: str | os.PathLike) -> Path:
 
 def _write_npz(path: Path, arrays: dict, metadata: dict) -> None:
   path.parent.mkdir(parents=True, exist_ok=True)
-  fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-  try:
-    with os.fdopen(fd, "wb") as f:
-      np.savez(f, metadata=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
-    os.replace(tmp, path)
-  except BaseException:
-    Path(tmp).unlink(missing_ok=True)
-    raise
+  atomic.write_npz(path, metadata=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
 
 
 def _read_npz(path: Path, names: tuple[str, ...]) -> tuple[dict, dict]:

@@ -7,7 +7,8 @@
 
 from absl import app, flags
 
-from cvmdx_jax import cli, report
+from cvmdx_jax import cli
+from cvmdx_jax.evaluation import report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")

@@ -16,7 +16,8 @@ from absl import app, flags
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli, report
+from cvmdx_jax import cli
+from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from cvmdx_jax import baselines, vmm
+from cvmdx_jax import vmm
+from cvmdx_jax.evaluation import baselines
 
 DT = 0.04
 

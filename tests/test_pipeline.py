@@ -17,8 +17,9 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import checkpointing, evaluation, report
+from cvmdx_jax import checkpointing
 from cvmdx_jax import runs as runs_lib
+from cvmdx_jax.evaluation import report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.predict import IncompatibleRunsError, Predictor
@@ -46,10 +47,10 @@ def test_report_has_every_method_subset_and_figure(runs):
                        data_dir=runs / "data", workdir=runs / "eval", max_scenarios=30,
                        ddpm_scenarios=3)
   saved = json.loads((runs / "eval" / "metrics.json").read_text())
-  assert set(evaluation.METHODS) <= set(saved)
-  for method in evaluation.METHODS:
-    assert set(saved[method]) == set(evaluation.SUBSETS)
-    for subset in evaluation.SUBSETS:
+  assert set(scoring.METHODS) <= set(saved)
+  for method in scoring.METHODS:
+    assert set(saved[method]) == set(scoring.SUBSETS)
+    for subset in scoring.SUBSETS:
       row = saved[method][subset]
       assert {"ade", "fde", "miss_rate", "hit_rate", "num_scenarios"} <= set(row)
       assert row["ade"] <= row["fde"] + 1e-9 or method == "cvmdx_best_of_k"

@@ -10,13 +10,12 @@ the ego at the last observed step (ego x = y = 0 there) and predicted_x/y relati
 which is what the cVMDx evaluation assumes; absent = -1.
 """
 
-import os
 from pathlib import Path
 
 import numpy as np
 import scipy.io
 
-from cvmdx_jax import constants
+from cvmdx_jax import atomic, constants
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 
@@ -97,9 +96,6 @@ def export(scenarios: scenarios_lib.Scenarios, split_dir) -> list:
                scenario_type=np.array([_SCENARIO_TYPES[label]]), data_keys=keys)
     path = split_dir / f"class{label}" / f"{i:06d}.mat"
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as handle:
-      scipy.io.savemat(handle, mat)
-    os.replace(tmp, path)
+    atomic.write_mat(path, mat)
     paths.append(path)
   return paths

@@ -11,6 +11,7 @@ import hashlib
 import json
 from pathlib import Path
 
+from cvmdx_jax import atomic
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo
 from cvmdx_jax.data.errors import DataError
 
@@ -44,7 +45,7 @@ def _sumo_recordings(config, data_dir: Path) -> Path:
   if not (present and stamp.is_file() and stamp.read_text() == wanted):
     stamp.unlink(missing_ok=True)
     sumo.make_recordings(config.sumo, rec_dir)
-    stamp.write_text(wanted)
+    atomic.write_text(stamp, wanted)
   return rec_dir
 
 

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import constants, vmm
+from cvmdx_jax import constants, sharding, vmm
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 
@@ -84,14 +84,6 @@ def candidates(rec, config: ExtractionConfig) -> dict:
   keep = np.where(has, np.isin(rows, lc_rows), np.isin(rows, kl_rows))
   ttlc = np.where(has, (cross - rows) / constants.FRAME_RATE_HZ, -1.0)
   return {"row": rows[keep], "label": label[keep].astype(np.int32), "ttlc": ttlc[keep]}
-
-
-def balance(labels: np.ndarray, seed: int) -> np.ndarray:
-  """Sorted indices undersampling every class to the smallest class count."""
-  rng = np.random.default_rng(seed)
-  groups = [np.flatnonzero(labels == c) for c in range(constants.NUM_CLASSES)]
-  n = min(len(g) for g in groups)
-  return np.sort(np.concatenate([rng.choice(g, n, replace=False) for g in groups]))
 
 
 def windows(rec, rows: np.ndarray) -> dict:
@@ -171,7 +163,7 @@ def _fit_in_chunks(future, v0, psi0, config: ExtractionConfig, chunk: int = 2048
   out = []
   for start in range(0, len(future), chunk):
     n = min(chunk, len(future) - start)
-    pad = lambda x: np.concatenate([x[start:start + n], np.repeat(x[:1], chunk - n, 0)])
+    pad = lambda x: sharding.pad_batch(x[start:start + n], chunk)[0]
     out.append(np.asarray(fit_controls(pad(future), pad(v0), pad(psi0),
                                        config.control_smoothing,
                                        config.control_iterations))[:n])
@@ -205,7 +197,7 @@ def scenarios_from_recordings(recordings, config, source: str) -> scenarios_lib.
   arrays["label"] = np.concatenate(labels)
   arrays["time_to_lane_change"] = np.concatenate(ttlc)
   if config.balance:
-    index = balance(arrays["label"], config.seed)
+    index = scenarios_lib.balanced_indices(arrays["label"], config.seed)
     if len(index) == 0:
       raise DataError(source, "empty selection: a class has no scenario, cannot balance",
                       column="label")

@@ -71,23 +71,63 @@ class Scenarios:
   def as_dict(self) -> dict:
     return {name: getattr(self, name) for name in FIELDS}
 
-  def validate(self, source: str = "scenarios") -> "Scenarios":
-    """Checks shapes, dtypes and finiteness; raises ValueError naming the field."""
+  def validate(self, source: str = "scenarios", fields=tuple(FIELDS), *, dtypes: bool = True,
+               allow_empty: bool = True) -> "Scenarios":
+    """Checks `fields` against the contract; raises ValueError naming source and field.
+
+    Args:
+      source: where the scenarios come from (file, split), for the message.
+      fields: names of the fields to check: shape (M, ...), dtype, finiteness, label
+        range. Default: all, as every reader must produce them; a consumer names
+        the fields it reads (the predictor: xi, mask, v0, psi0).
+      dtypes: False accepts any dtype (for a consumer that casts what it reads).
+      allow_empty: False refuses M = 0.
+
+    Returns:
+      self.
+    """
+    unknown = sorted(set(fields) - set(FIELDS))
+    if unknown:
+      raise ValueError(f"Scenarios.validate: unknown field(s) {unknown}")
     m = len(self)
     for name, (shape, dtype) in FIELDS.items():
+      if name not in fields:
+        continue
       value = np.asarray(getattr(self, name))
       if value.shape != (m, *shape):
         raise ValueError(f"{source}: field '{name}' has shape {value.shape}, "
                          f"expected {(m, *shape)}")
-      if value.dtype != dtype:
+      if dtypes and value.dtype != dtype:
         raise ValueError(f"{source}: field '{name}' has dtype {value.dtype}, "
                          f"expected {np.dtype(dtype)}")
       if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
         raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
-    if np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
+    if "label" in fields and np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
       raise ValueError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
+    if not allow_empty and m == 0:
+      raise ValueError(f"{source}: no scenarios")
     return self
+
+
+def balanced_indices(labels, seed: int, size: int | None = None) -> np.ndarray:
+  """Sorted indices of a class-balanced selection, each class drawn without replacement.
+
+  Args:
+    labels: (M,) class labels 0 .. NUM_CLASSES - 1.
+    seed: numpy seed of the draw.
+    size: None undersamples every class to the smallest class count (the dataset
+      builder); an int takes ceil(size / NUM_CLASSES) of each class (all of a smaller
+      one) and keeps the first `size` indices (evaluation subsets).
+
+  Returns:
+    (K,) int64 indices in increasing order.
+  """
+  rng = np.random.default_rng(seed)
+  groups = [np.flatnonzero(np.asarray(labels) == c) for c in range(constants.NUM_CLASSES)]
+  n = min(len(g) for g in groups) if size is None else -(-size // constants.NUM_CLASSES)
+  index = np.sort(np.concatenate([rng.choice(g, min(n, len(g)), replace=False) for g in groups]))
+  return index if size is None else index[:size]
 
 
 def from_arrays(**arrays) -> Scenarios:

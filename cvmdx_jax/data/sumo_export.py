@@ -11,13 +11,12 @@ travel) longitudinally overlapping = alongside, else the nearest ahead/behind. V
 rounded to two decimals like highD.
 """
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from cvmdx_jax import constants
+from cvmdx_jax import atomic, constants
 from cvmdx_jax.data import highd, sumo_network
 
 _KEY_SHIFT = 26  # bits of the centimetre position in the neighbour search key
@@ -114,9 +113,8 @@ def _neighbours(t: pd.DataFrame) -> dict:
 
 
 def _write_csv(frame: pd.DataFrame, path: Path) -> None:
-  tmp = path.with_name(path.name + ".tmp")
-  frame.to_csv(tmp, index=False, float_format="%.2f")
-  os.replace(tmp, path)
+  with atomic.writing(path, "w") as f:
+    frame.to_csv(f, index=False, float_format="%.2f")
 
 
 def export_recording(fcd: pd.DataFrame, cfg, recording_id: int, out_dir: Path) -> int:

