@@ -66,7 +66,7 @@ def _predict(bundle, graphdef_params, xi, mask, v0, psi0, keys, schedule, *, nul
 
 
 def check_scenarios(scenarios: Scenarios, source: str = "scenarios") -> None:
-  """Raises ValueError for wrong shapes or non-finite inputs of the fields the model reads."""
+  """Raises ValueError for wrong shapes, non-finite inputs or v0 < 0 (fields the model reads)."""
   n, t, f = constants.NUM_VEHICLES, constants.T_OBS, constants.NUM_FEATURES
   m = len(scenarios)
   expected = {"xi": (m, n, t, f), "mask": (m, n, t), "v0": (m,), "psi0": (m,)}
@@ -77,6 +77,9 @@ def check_scenarios(scenarios: Scenarios, source: str = "scenarios") -> None:
     if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
       bad = np.argwhere(~np.isfinite(value.reshape(m, -1)).all(-1))[0, 0]
       raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
+    if name == "v0" and np.any(value < 0):
+      bad = int(np.argmax(value < 0))
+      raise ValueError(f"{source}: field 'v0' is negative ({value[bad]} m/s, scenario {bad})")
   if m == 0:
     raise ValueError(f"{source}: no scenarios")
 
