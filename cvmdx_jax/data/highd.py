@@ -27,7 +27,9 @@ Physical ranges, checked on every row (`RANGES`; a `DataError` names the first r
 Other columns (sight distances, dhw, thw, ttc, preceding velocity, meta statistics) are
 unused and only checked for finiteness and the +-1e9 bound.
 
-Errors name the file, the 1-based line (the header is line 1) and the column.
+Errors name the file, the 1-based line (the header is line 1) and the column (none for a
+missing or empty file, or a line with more fields than the header). A blank line inside a
+file is an error at its line; trailing blank lines are ignored.
 """
 
 import dataclasses
@@ -97,17 +99,23 @@ def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
   if not path.is_file():
     raise DataError(path, "file not found")
   try:
-    frame = pd.read_csv(path, skipinitialspace=True)
+    # Blank lines are kept (as empty rows) so that row numbers stay the file's lines.
+    frame = pd.read_csv(path, skipinitialspace=True, skip_blank_lines=False)
   except pd.errors.EmptyDataError as err:
     raise DataError(path, "empty file, no header", row=1) from err
-  except (pd.errors.ParserError, UnicodeDecodeError) as err:
-    line = re.search(r"line (\d+)", str(err))
-    raise DataError(path, f"unreadable CSV ({str(err).strip()})",
-                    row=int(line.group(1)) if line else None) from err
+  except UnicodeDecodeError as err:
+    raise DataError(path, "not UTF-8 text", *_locate_byte(path)) from err
+  except pd.errors.ParserError as err:
+    # pandas names a 1-based "line N" (too many fields) or a 0-based "row N" (open quote).
+    line, row = re.search(r"line (\d+)", str(err)), re.search(r"row (\d+)", str(err))
+    where = int(line.group(1)) if line else int(row.group(1)) + 1 if row else None
+    raise DataError(path, f"unreadable CSV ({str(err).strip()})", row=where) from err
   header = list(frame.columns)
   for name in columns:
     if name not in header:
       raise DataError(path, f"missing column (header has {header})", row=1, column=name)
+  filled = np.flatnonzero(frame.notna().any(axis=1).to_numpy())
+  frame = frame.iloc[:filled[-1] + 1 if len(filled) else 0]  # trailing blank lines dropped
   if len(frame) == 0:
     raise DataError(path, "no data rows", row=2)
   for name in columns:
@@ -115,6 +123,8 @@ def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
     if name in _TEXT_COLUMNS:
       bad = values.isna().to_numpy()
     else:
+      if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
+        values = values.astype(str)
       if not pd.api.types.is_numeric_dtype(values):
         values = pd.to_numeric(values, errors="coerce")
         bad = values.isna().to_numpy() & frame[name].notna().to_numpy()
@@ -132,6 +142,19 @@ def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
       _check_range(path, name, frame[name].to_numpy(np.float64),
                    ranges.get(name, (-ABSURD, ABSURD, False)))
   return frame
+
+
+def _locate_byte(path: Path) -> tuple:
+  """(1-based line, header column) of the first byte that is not UTF-8."""
+  data = path.read_bytes()
+  try:
+    data.decode("utf-8")
+    return None, None
+  except UnicodeDecodeError as err:
+    start = err.start
+  field = data.count(b",", data.rfind(b"\n", 0, start) + 1, start)
+  header = data.split(b"\n", 1)[0].decode("utf-8", errors="replace").strip().split(",")
+  return data.count(b"\n", 0, start) + 1, header[field] if field < len(header) else None
 
 
 def _check_range(path: Path, name: str, values: np.ndarray, bounds) -> None:

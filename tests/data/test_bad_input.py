@@ -9,6 +9,7 @@ import pytest
 
 from cvmdx_jax.data import dataset, extract, highd
 from cvmdx_jax.data.errors import DataError
+from tests.data.conftest import write_recording
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -99,6 +100,20 @@ def test_values_outside_physical_ranges(highd_dir, name, line, field, value, col
   _expect(highd_dir, name, line, column)
 
 
+def test_blank_line_non_utf8_and_boolean_are_located(highd_dir):
+  path = highd_dir / "01_tracks.csv"
+  lines = path.read_text().splitlines()
+  path.write_text("\n".join(lines[:9] + [""] + lines[9:]) + "\n\n")  # line 10 blank
+  _expect(highd_dir, "01_tracks.csv", 10, "frame")
+  cells = lines[11].split(",")
+  lines[11] = ",".join(cells[:3] + ["\udcff"] + cells[4:])  # y of line 12
+  path.write_bytes("\n".join(lines).encode("utf-8", "surrogateescape"))
+  _expect(highd_dir, "01_tracks.csv", 12, "y")
+  write_recording(highd_dir, 1)
+  _edit_line(highd_dir / "01_recordingMeta.csv", 2, 2, "TRUE")
+  _expect(highd_dir, "01_recordingMeta.csv", 2, "locationId")
+
+
 def test_swapped_driving_direction(highd_dir):
   _edit_line(highd_dir / "01_tracksMeta.csv", 4, 7, "2")  # vehicle 3 drives toward -x
   err = _expect(highd_dir, "01_tracks.csv", 602, "xVelocity")
@@ -120,7 +135,6 @@ def test_malformed_lane_markings(highd_dir, markings):
 
 
 def test_recording_without_lane_change(tmp_path):
-  from tests.data.conftest import write_recording
   write_recording(tmp_path, 1, vehicles=(2, 4, 5))
   config = extract.ExtractionConfig(balance=False)
   scen = highd.load_scenarios(tmp_path, [1], config)
