@@ -30,6 +30,9 @@ class IncompatibleRunsError(ValueError):
   """The tokeniser and the denoiser were not trained together."""
 
 
+INPUT_FIELDS = ("xi", "mask", "v0", "psi0")  # the Scenarios fields a prediction reads
+
+
 @dataclasses.dataclass(frozen=True)
 class PredictorOutput:
   """Predictions for M scenarios (numpy).
@@ -108,7 +111,7 @@ class Predictor:
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
     """Predicts every scenario; see the module docstring."""
-    scenarios.validate(fields=("xi", "mask", "v0", "psi0"), dtypes=False, allow_empty=False)
+    scenarios.validate(fields=INPUT_FIELDS, dtypes=False, allow_empty=False)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
     m = len(scenarios)

@@ -4,10 +4,11 @@ Sources (`config.source`): 'sumo' (simulate `config.sumo.num_recordings` recordi
 `data_dir/recordings`, highD format, then read them like highD), 'highd' (`config.highd_dir`),
 'cvmd_mat' (`config.mat_dir/{train,test}`). Splits by recording id from `config.splits`.
 The cache lives in `data_dir/cache` (see `cache`); it is reused only when it was made with the
-same settings from the same source files (path and size), otherwise rebuilt.
+same settings from source files of the same content (names relative to the source directory,
+sizes, sha256), otherwise rebuilt. `dataset_id` hashes exactly these, so it does not depend on
+how `data_dir`, `highd_dir` or `mat_dir` is spelled.
 """
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -19,20 +20,15 @@ SOURCES = ("sumo", "highd", "cvmd_mat")
 
 
 def _settings(config) -> dict:
-  """The config fields that determine the data (worker count and unused sources dropped)."""
+  """The config fields that determine the data: worker count, unused sources and the source
+  directories dropped (the sources' content stands for them, see `cache.sources`)."""
   c = config.to_dict()
   c["sumo"].pop("workers", None)
   if c["source"] != "sumo":
     c.pop("sumo")
-  if c["source"] != "highd":
-    c.pop("highd_dir")
-  if c["source"] != "cvmd_mat":
-    c.pop("mat_dir")
+  c.pop("highd_dir", None)
+  c.pop("mat_dir", None)
   return json.loads(json.dumps(c))
-
-
-def _sources(paths) -> list:
-  return [[str(p), p.stat().st_size] for p in sorted(paths)]
 
 
 def _sumo_recordings(config, data_dir: Path) -> Path:
@@ -79,13 +75,13 @@ def build(config, data_dir) -> dict:
                     column="config.source")
   settings = _settings(config)
   if config.source == "cvmd_mat":
-    mat_dir = Path(config.mat_dir)
+    mat_dir = root = Path(config.mat_dir)
     files = list(mat_dir.glob("*/class*/*.mat"))
     readers = {name: (lambda name=name: cvmd_mat.load(mat_dir / name))
                for name in ("train", "test")}
   else:
-    rec_dir = (_sumo_recordings(config, data_dir) if config.source == "sumo"
-               else Path(config.highd_dir))
+    rec_dir = root = (_sumo_recordings(config, data_dir) if config.source == "sumo"
+                      else Path(config.highd_dir))
     if not rec_dir.is_dir():
       raise DataError(rec_dir, "highD directory not found", column="config.highd_dir")
     ids = _split_ids(config, highd.available_recordings(rec_dir), rec_dir)
@@ -94,7 +90,7 @@ def build(config, data_dir) -> dict:
     ext = extract.as_config(config.extraction)
     readers = {name: (lambda name=name: highd.load_scenarios(rec_dir, ids[name], ext))
                for name in ids}
-  sources = _sources(files)
+  sources = cache.sources(root, files)
   cache_dir = data_dir / "cache"
   if cache.matches(cache.read_metadata(cache_dir), settings, sources):
     try:
@@ -112,8 +108,9 @@ def load_split(data_dir, split: str):
 
 
 def dataset_id(data_dir) -> str:
-  """12 hex digits: hash of the cache metadata (settings, sources, split file hashes)."""
+  """12 hex digits: content hash of the cached dataset's settings and sources (`cache`)."""
   metadata = cache.read_metadata(Path(data_dir) / "cache")
   if metadata is None:
-    raise DataError(Path(data_dir) / "cache" / cache.METADATA, "no dataset cache here")
-  return hashlib.sha256(json.dumps(metadata, sort_keys=True).encode()).hexdigest()[:12]
+    raise DataError(Path(data_dir) / "cache" / cache.METADATA,
+                    "no dataset cache here, or a malformed or older one (run make_dataset)")
+  return cache.dataset_id(metadata)

@@ -13,14 +13,11 @@ Rules (all in `ExtractionConfig`):
   velocities over the 75 observed frames, masked where they have no row.
 - Coordinates: road frame of the ego's direction, origin at the ego's centre at t0.
 - Balancing: each class randomly undersampled to the smallest class count (seeded).
-- Controls [a_x, yaw_rate]: `fit_controls`, a smoothed least-squares fit through `vmm.rollout`.
+- Controls [a_x, yaw_rate]: `vmm.fit_controls`, a smoothed least-squares fit through `vmm.rollout`.
 """
 
 import dataclasses
-import functools
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import constants, sharding, vmm
@@ -77,8 +74,9 @@ def candidates(rec, config: ExtractionConfig) -> dict:
 
   nxt = np.searchsorted(crossing, rows, side="right")
   has = nxt < len(crossing)
-  cross = np.where(has, crossing[np.minimum(nxt, len(crossing) - 1)], -1)
-  has &= (cross - rows <= constants.T_PRED) & (ids[np.maximum(cross, 0)] == ids[rows])
+  # Without any lane change (crossing empty) every row is keep-lane; index 1 is a dummy.
+  cross = np.where(has, np.r_[crossing, 1][np.minimum(nxt, len(crossing))], 1)
+  has &= (cross - rows <= constants.T_PRED) & (ids[cross] == ids[rows])
   step = np.sign(lane[cross] - lane[cross - 1]) * np.where(rec.direction[rows] == 1, 1, -1)
   label = np.where(has, np.where(step > 0, 2, 1), 0)
   keep = np.where(has, np.isin(rows, lc_rows), np.isin(rows, kl_rows))
@@ -108,63 +106,13 @@ def windows(rec, rows: np.ndarray) -> dict:
           "recording_id": np.full(len(rows), rec.recording_id)}
 
 
-@functools.lru_cache(maxsize=4)
-def _fit_matrices(smoothing: float):
-  """G = (A^T A + s D^T D)^-1 A^T and H = (A^T A + s D^T D)^-1 s D^T D (numpy, T x T).
-
-  A maps controls to positions of the linearised VMM: x_K = sum_{j<K} dt^2 (K - j - 1/2) a_j.
-  """
-  t, dt = constants.T_PRED, constants.DT
-  k, j = np.meshgrid(np.arange(1, t + 1), np.arange(t), indexing="ij")
-  a = np.where(j < k, dt * dt * (k - j - 0.5), 0.0)
-  d = np.diff(np.eye(t), axis=0)
-  m = a.T @ a + smoothing * d.T @ d
-  return (np.linalg.solve(m, a.T).astype(np.float32),
-          np.linalg.solve(m, smoothing * d.T @ d).astype(np.float32))
-
-
-@functools.partial(jax.jit, static_argnames=("smoothing", "iterations"))
-def fit_controls(future, v0, psi0, smoothing: float = 1e-2, iterations: int = 8):
-  """Smooth controls whose VMM rollout reproduces `future`.
-
-  Gauss-Newton on |rollout(u) - future|^2 + smoothing * (|D a|^2 + |D (v_mean w)|^2), with
-  the Jacobian of the linearised VMM (x depends on a through A, y on w through v_mean A).
-
-  Args:
-    future: (M, 125, 2) positions after t0, m.
-    v0, psi0: (M,) speed m/s and heading rad at t0.
-    smoothing: penalty weight on control differences (larger = smoother, less exact).
-    iterations: Gauss-Newton steps.
-
-  Returns:
-    (M, 125, 2) [a_x m/s^2, yaw_rate rad/s].
-  """
-  g, h = (jnp.asarray(x) for x in _fit_matrices(smoothing))
-  t = jnp.arange(1, constants.T_PRED + 1) * constants.DT
-  dist = jnp.linalg.norm(jnp.diff(future, axis=1, prepend=0 * future[:, :1]), axis=-1)
-  v_mean = jnp.maximum(dist.mean(-1) / constants.DT, 1.0)[:, None]  # (M, 1)
-
-  def step(controls, _):
-    r = future - vmm.rollout(controls, v0, psi0)
-    a, w = controls[..., 0], controls[..., 1]
-    a = a + r[..., 0] @ g.T - a @ h.T
-    w = w + (r[..., 1] / v_mean) @ g.T - w @ h.T
-    return jnp.stack([a, w], -1), None
-
-  init = jnp.zeros_like(future)
-  init = init.at[..., 0].set(((future[:, :, 0] - v0[:, None] * t) @ g.T))
-  init = init.at[..., 1].set(((future[:, :, 1] / v_mean - psi0[:, None] * t) @ g.T))
-  controls, _ = jax.lax.scan(step, init, None, length=iterations)
-  return controls
-
-
 def _fit_in_chunks(future, v0, psi0, config: ExtractionConfig, chunk: int = 2048):
-  """`fit_controls` over fixed-size chunks (one compilation, bounded memory)."""
+  """`vmm.fit_controls` over fixed-size chunks (one compilation, bounded memory)."""
   out = []
   for start in range(0, len(future), chunk):
     n = min(chunk, len(future) - start)
     pad = lambda x: sharding.pad_batch(x[start:start + n], chunk)[0]
-    out.append(np.asarray(fit_controls(pad(future), pad(v0), pad(psi0),
+    out.append(np.asarray(vmm.fit_controls(pad(future), pad(v0), pad(psi0),
                                        config.control_smoothing,
                                        config.control_iterations))[:n])
   return np.concatenate(out) if out else np.zeros((0, constants.T_PRED, 2), np.float32)

@@ -9,10 +9,31 @@ toward -x (upper lanes), 2 toward +x (lower lanes).
 Road frame per direction (right-handed, x along travel, y to the driver's left), applied to
 the bounding-box centre and to velocities: direction 2: (x, -y); direction 1: (-x, y).
 
-Errors name the file, the 1-based line (the header is line 1) and the column.
+Physical ranges, checked on every row (`RANGES`; a `DataError` names the first row outside):
+- every numeric cell finite and within +-1e9 (catches 1e30 / 1e40 anywhere);
+- integer columns (frame, ids, laneId, frame counts, drivingDirection, frameRate) hold
+  whole numbers: frame, initialFrame, finalFrame in [0, 1e7]; id in [1, 1e6], neighbour
+  ids in [0, 1e6]; laneId in [1, 100]; numFrames in [1, 1e7];
+- tracks: x, y within +-1e4 m; width (vehicle length) in (0, 50] m, height (vehicle
+  width) in (0, 10] m; |xVelocity| <= 100 m/s, |yVelocity| <= 20 m/s; |xAcceleration|,
+  |yAcceleration| <= 20 m/s^2; tracksMeta width, height in the same size ranges;
+- drivingDirection agrees with the x-motion: xVelocity * (+1 for direction 2, -1 for 1)
+  >= -1 m/s (a standing vehicle may jitter by rounding), and between consecutive frames of
+  a track the centre moves by the mean of the two xVelocity values times 1/25 s within 1 m
+  in x, and by at most 20 m/s / 25 Hz = 0.8 m in y;
+- tracksMeta finalFrame = initialFrame + numFrames - 1;
+- recordingMeta lane markings: ";"-separated finite numbers within +-1e4 m, at least two
+  per list, strictly ascending.
+Other columns (sight distances, dhw, thw, ttc, preceding velocity, meta statistics) are
+unused and only checked for finiteness and the +-1e9 bound.
+
+Errors name the file, the 1-based line (the header is line 1) and the column (none for a
+missing or empty file, or a line with more fields than the header). A blank line inside a
+file is an error at its line; trailing blank lines are ignored.
 """
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +62,30 @@ _TEXT_COLUMNS = ("class", "month", "weekDay", "startTime", "upperLaneMarkings",
 # Neighbour columns in `constants.VEHICLE_SLOTS[1:]` order.
 NEIGHBOUR_COLUMNS = tuple(f"{slot}Id" for slot in constants.VEHICLE_SLOTS[1:])
 
+ABSURD = 1e9  # bound on every numeric cell
+MAX_ID = 1_000_000  # track ids index dense per-id arrays
+MAX_FRAME = 10_000_000
+_POSITION, _LENGTH, _WIDTH = (-1e4, 1e4), (0.0, 50.0), (0.0, 10.0)
+_ACCEL = (-20.0, 20.0)
+# column -> (low, high, integer); a 0.0 low bound of a size is exclusive ("> 0").
+RANGES = {
+    "tracks": {
+        "frame": (0, MAX_FRAME, True), "id": (1, MAX_ID, True), "x": (*_POSITION, False),
+        "y": (*_POSITION, False), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
+        "xVelocity": (-100.0, 100.0, False), "yVelocity": (-20.0, 20.0, False),
+        "xAcceleration": (*_ACCEL, False), "yAcceleration": (*_ACCEL, False),
+        "laneId": (1, 100, True), **{c: (0, MAX_ID, True) for c in NEIGHBOUR_COLUMNS}},
+    "tracksMeta": {
+        "id": (1, MAX_ID, True), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
+        "initialFrame": (0, MAX_FRAME, True), "finalFrame": (0, MAX_FRAME, True),
+        "numFrames": (1, MAX_FRAME, True), "drivingDirection": (1, 2, True)},
+    "recordingMeta": {"frameRate": (1, 1000, True)},
+}
+_SIZE_COLUMNS = ("width", "height")
+MAX_DIRECTION_SLACK = 1.0  # m/s of xVelocity against the driving direction
+MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
+MAX_LATERAL_STEP = 20.0 * constants.DT  # m per frame in y
+
 
 def recording_paths(data_dir, recording_id: int) -> dict:
   """{'tracks', 'tracksMeta', 'recordingMeta'} -> Path of recording `recording_id`."""
@@ -49,18 +94,28 @@ def recording_paths(data_dir, recording_id: int) -> dict:
           for kind in ("tracks", "tracksMeta", "recordingMeta")}
 
 
-def _read_table(path: Path, columns) -> pd.DataFrame:
-  """Reads one CSV and checks its header, numeric cells and NaNs."""
+def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
+  """Reads one CSV; checks its header, numeric cells, NaNs and `ranges` (see RANGES)."""
   if not path.is_file():
     raise DataError(path, "file not found")
   try:
-    frame = pd.read_csv(path, skipinitialspace=True)
-  except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
-    raise DataError(path, f"unreadable CSV ({str(err).strip()})") from err
+    # Blank lines are kept (as empty rows) so that row numbers stay the file's lines.
+    frame = pd.read_csv(path, skipinitialspace=True, skip_blank_lines=False)
+  except pd.errors.EmptyDataError as err:
+    raise DataError(path, "empty file, no header", row=1) from err
+  except UnicodeDecodeError as err:
+    raise DataError(path, "not UTF-8 text", *_locate_byte(path)) from err
+  except pd.errors.ParserError as err:
+    # pandas names a 1-based "line N" (too many fields) or a 0-based "row N" (open quote).
+    line, row = re.search(r"line (\d+)", str(err)), re.search(r"row (\d+)", str(err))
+    where = int(line.group(1)) if line else int(row.group(1)) + 1 if row else None
+    raise DataError(path, f"unreadable CSV ({str(err).strip()})", row=where) from err
   header = list(frame.columns)
   for name in columns:
     if name not in header:
       raise DataError(path, f"missing column (header has {header})", row=1, column=name)
+  filled = np.flatnonzero(frame.notna().any(axis=1).to_numpy())
+  frame = frame.iloc[:filled[-1] + 1 if len(filled) else 0]  # trailing blank lines dropped
   if len(frame) == 0:
     raise DataError(path, "no data rows", row=2)
   for name in columns:
@@ -68,6 +123,8 @@ def _read_table(path: Path, columns) -> pd.DataFrame:
     if name in _TEXT_COLUMNS:
       bad = values.isna().to_numpy()
     else:
+      if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
+        values = values.astype(str)
       if not pd.api.types.is_numeric_dtype(values):
         values = pd.to_numeric(values, errors="coerce")
         bad = values.isna().to_numpy() & frame[name].notna().to_numpy()
@@ -81,7 +138,77 @@ def _read_table(path: Path, columns) -> pd.DataFrame:
       row = int(np.argmax(bad))
       raise DataError(path, "empty, NaN or infinite value (truncated file?)",
                       row=row + 2, column=name)
+    if name not in _TEXT_COLUMNS:
+      _check_range(path, name, frame[name].to_numpy(np.float64),
+                   ranges.get(name, (-ABSURD, ABSURD, False)))
   return frame
+
+
+def _locate_byte(path: Path) -> tuple:
+  """(1-based line, header column) of the first byte that is not UTF-8."""
+  data = path.read_bytes()
+  try:
+    data.decode("utf-8")
+    return None, None
+  except UnicodeDecodeError as err:
+    start = err.start
+  field = data.count(b",", data.rfind(b"\n", 0, start) + 1, start)
+  header = data.split(b"\n", 1)[0].decode("utf-8", errors="replace").strip().split(",")
+  return data.count(b"\n", 0, start) + 1, header[field] if field < len(header) else None
+
+
+def _check_range(path: Path, name: str, values: np.ndarray, bounds) -> None:
+  """DataError at the first value outside `bounds` = (low, high, integer)."""
+  low, high, integer = bounds
+  bad = (values > high) | (values < low) | (np.abs(values) > ABSURD)
+  if name in _SIZE_COLUMNS:
+    bad |= values <= 0
+  if integer:
+    bad |= values != np.round(values)
+  if bad.any():
+    row = int(np.argmax(bad))
+    kind = "a whole number in" if integer else "in"
+    interval = f"(0, {high}]" if name in _SIZE_COLUMNS else f"[{low:g}, {high:g}]"
+    raise DataError(path, f"value {values[row]:g} is not {kind} {interval}",
+                    row=row + 2, column=name)
+
+
+def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
+  """Parses '8.51;12.59;16.43' (>= 2 finite ascending values within +-1e4 m)."""
+  try:
+    values = np.array([float(v) for v in str(text).split(";")])
+  except ValueError:
+    values = np.array([np.nan])
+  if (len(values) < 2 or not np.all(np.isfinite(values))
+      or np.any(np.abs(values) > _POSITION[1]) or np.any(np.diff(values) <= 0)):
+    raise DataError(path, f"lane markings {text!r} are not >= 2 ascending numbers "
+                    "separated by ';'", row=2, column=column)
+  return values
+
+
+def _check_motion(path: Path, tracks: pd.DataFrame, direction: np.ndarray,
+                  same_track: np.ndarray) -> None:
+  """drivingDirection against xVelocity, and positions against velocities (docstring)."""
+  vx = tracks["xVelocity"].to_numpy(np.float64)
+  bad = np.where(direction == 2, vx, -vx) < -MAX_DIRECTION_SLACK
+  if bad.any():
+    row = int(np.argmax(bad))
+    raise DataError(path, f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
+                    f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, "
+                    "2 toward +x)", row=row + 2, column="xVelocity")
+  centre = {c: tracks[c].to_numpy(np.float64) + 0.5 * tracks[s].to_numpy(np.float64)
+            for c, s in (("x", "width"), ("y", "height"))}
+  dx = np.diff(centre["x"]) - 0.5 * (vx[1:] + vx[:-1]) * constants.DT
+  for column, bad in (("x", np.abs(dx) > MAX_MOTION_MISMATCH),
+                      ("y", np.abs(np.diff(centre["y"])) > MAX_LATERAL_STEP)):
+    bad &= same_track
+    if bad.any():
+      row = int(np.argmax(bad)) + 1
+      raise DataError(path, f"the centre jumps in {column} between frames "
+                      f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
+                      f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
+                      f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
+                      row=row + 2, column=column)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,22 +242,27 @@ class Recording:
 def read_recording(data_dir, recording_id: int) -> Recording:
   """Reads and validates recording `recording_id` of `data_dir`; raises DataError."""
   paths = recording_paths(data_dir, recording_id)
-  rec_meta = _read_table(paths["recordingMeta"], RECORDING_META_COLUMNS)
+  rec_meta = _read_table(paths["recordingMeta"], RECORDING_META_COLUMNS,
+                         RANGES["recordingMeta"])
   if int(rec_meta["frameRate"].iloc[0]) != constants.FRAME_RATE_HZ:
     raise DataError(paths["recordingMeta"], f"frame rate {rec_meta['frameRate'].iloc[0]}, "
                     f"expected {constants.FRAME_RATE_HZ}", row=2, column="frameRate")
-  meta = _read_table(paths["tracksMeta"], TRACKS_META_COLUMNS)
-  tracks = _read_table(paths["tracks"], TRACKS_COLUMNS)
+  for column in ("upperLaneMarkings", "lowerLaneMarkings"):
+    _lane_markings(paths["recordingMeta"], rec_meta[column].iloc[0], column)
+  meta = _read_table(paths["tracksMeta"], TRACKS_META_COLUMNS, RANGES["tracksMeta"])
+  tracks = _read_table(paths["tracks"], TRACKS_COLUMNS, RANGES["tracks"])
   meta_path, path = paths["tracksMeta"], paths["tracks"]
+  bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
+  if bad.any():
+    raise DataError(meta_path, "finalFrame is not initialFrame + numFrames - 1",
+                    row=int(np.argmax(bad)) + 2, column="finalFrame")
 
   meta_ids = meta["id"].to_numpy(np.int64)
-  if meta_ids.min() < 1 or len(np.unique(meta_ids)) != len(meta_ids):
-    raise DataError(meta_path, "track ids must be unique and >= 1", column="id")
-  direction_of = meta["drivingDirection"].to_numpy(np.int64)
-  bad = ~np.isin(direction_of, (1, 2))
+  bad = meta["id"].duplicated().to_numpy()
   if bad.any():
-    raise DataError(meta_path, "drivingDirection must be 1 or 2",
-                    row=int(np.argmax(bad)) + 2, column="drivingDirection")
+    raise DataError(meta_path, f"track id {meta_ids[np.argmax(bad)]} appears twice",
+                    row=int(np.argmax(bad)) + 2, column="id")
+  direction_of = meta["drivingDirection"].to_numpy(np.int64)  # 1 or 2 (RANGES)
   size = meta_ids.max() + 1
   known = np.zeros(size + 1, bool)
   known[meta_ids] = True
@@ -173,6 +305,7 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   dir_by_id = np.zeros(size, np.int64)
   dir_by_id[meta_ids] = direction_of
   direction = dir_by_id[ids]
+  _check_motion(path, tracks, direction, ids[1:] == ids[:-1])
   sign = np.where(direction == 2, 1.0, -1.0)
   col = lambda name: tracks[name].to_numpy(np.float64)
   centre_x = col("x") + 0.5 * col("width")

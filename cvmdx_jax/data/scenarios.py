@@ -40,7 +40,7 @@ class Scenarios:
     future: (M, 125, 2) ego positions after t0 (steps t0+1 .. t0+125).
     controls: (M, 125, 2) [a_x m/s^2, yaw_rate rad/s]; `vmm.rollout(controls,
       v0, psi0)` reproduces `future`.
-    v0: (M,) ego speed at t0, m/s.
+    v0: (M,) ego speed at t0, m/s, >= 0.
     psi0: (M,) ego heading at t0 relative to the road axis, rad.
     label: (M,) 0 keep lane, 1 lane change right, 2 lane change left.
     time_to_lane_change: (M,) s from t0 to the lane crossing; -1 for keep lane
@@ -103,6 +103,9 @@ class Scenarios:
       if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
         raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
+    if "v0" in fields and np.any(self.v0 < 0):
+      bad = int(np.argmax(self.v0 < 0))
+      raise ValueError(f"{source}: field 'v0' is negative ({self.v0[bad]} m/s, scenario {bad})")
     if "label" in fields and np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
       raise ValueError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
     if not allow_empty and m == 0:

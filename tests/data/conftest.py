@@ -47,21 +47,27 @@ def lane_of(y):
   return 1 + np.searchsorted(np.array(UPPER + LOWER), y)
 
 
-def write_recording(directory: Path, recording_id: int = 1) -> None:
-  """Writes the recording described in the module docstring."""
+def write_recording(directory: Path, recording_id: int = 1, vehicles=(1, 2, 3, 4, 5)) -> None:
+  """Writes the recording described in the module docstring (only `vehicles`)."""
   rows, meta = [], []
   neighbours = {1: {"precedingId": 2, "rightFollowingId": 5}, 2: {"followingId": 1},
                 3: {"leftAlongsideId": 4}, 4: {"rightAlongsideId": 3}}
   for vid, (frames, x, y, direction) in vehicle_paths().items():
+    if vid not in vehicles:
+      continue
     vx = np.gradient(x, DT)
     vy = np.gradient(y, DT)
     table = {"frame": frames, "id": vid, "x": x - 2.0, "y": y - 1.0, "width": 4.0,
              "height": 2.0, "xVelocity": vx, "yVelocity": vy,
-             "xAcceleration": np.gradient(vx, DT), "yAcceleration": np.gradient(vy, DT),
+             # The lane-change ramps step the lateral speed within a frame; their unused
+             # acceleration column is clipped into highd's physical range.
+             "xAcceleration": np.gradient(vx, DT),
+             "yAcceleration": np.clip(np.gradient(vy, DT), -2.0, 2.0),
              "frontSightDistance": 100.0, "backSightDistance": 100.0, "dhw": 0.0, "thw": 0.0,
              "ttc": 0.0, "precedingXVelocity": 0.0, "laneId": lane_of(y)}
     for column in highd.NEIGHBOUR_COLUMNS:
-      table[column] = neighbours.get(vid, {}).get(column, 0)
+      other = neighbours.get(vid, {}).get(column, 0)
+      table[column] = other if other in vehicles else 0
     rows.append(pd.DataFrame(table))
     meta.append({"id": vid, "width": 4.0, "height": 2.0, "initialFrame": frames[0],
                  "finalFrame": frames[-1], "numFrames": len(frames), "class": "Car",

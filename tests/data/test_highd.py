@@ -76,11 +76,3 @@ def test_balance_equalises_classes(highd_dir):
   again = highd.load_scenarios(highd_dir, [1, 2], cfg)
   np.testing.assert_array_equal(s.frame, again.frame)
 
-
-def test_fit_controls_recovers_constant_turn():
-  # A closed-form VMM path: constant a and yaw rate -> the fit must return them.
-  controls = np.broadcast_to(np.array([0.5, 0.02], np.float32), (3, 125, 2))
-  v0, psi0 = np.array([20.0, 30.0, 10.0], np.float32), np.array([0.0, 0.01, -0.02], np.float32)
-  future = np.asarray(vmm.rollout(controls, v0, psi0))
-  fitted = np.asarray(extract.fit_controls(future, v0, psi0))
-  np.testing.assert_allclose(fitted[:, 2:-2], controls[:, 2:-2], atol=0.02)
