@@ -38,7 +38,8 @@ def unet_config(config: ml_collections.ConfigDict, num_tokens: int) -> unet1d.UN
 def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
   s = config.sampling
   return SamplingConfig(
-      num_samples=s.num_samples, sampler=s.sampler, steps=s.steps, eta=s.eta,
+      num_samples=s.num_samples, sampler=s.sampler, mode=s.get("mode", "paper"),
+      steps=s.steps, eta=s.eta,
       clip_x0=s.clip_x0 if s.clip_x0 > 0 else None,
       control_scale=tuple(config.diffusion.control_scale),
       guidance=GuidanceConfig(**s.guidance.to_dict()),
