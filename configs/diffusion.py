@@ -60,6 +60,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   config.sampling = ml_collections.ConfigDict()
   config.sampling.num_samples = 9  # N samples per scenario (paper)
   config.sampling.sampler = "ddim"  # "ddim" or "ddpm"
+  # "paper" (the paper's equations) or "official" (the official code's guided DDIM loop:
+  # steps - 1 updates, w from w_min to w_max_base by step index, no delta; README)
+  config.sampling.mode = "paper"
   config.sampling.steps = 10  # S DDIM steps (paper)
   config.sampling.eta = 0.0  # DDIM noise
   config.sampling.clip_x0 = 1.0  # clip predicted x0 to [-1, 1] (official sampler); 0 = off

@@ -13,11 +13,13 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants, normalization, vmm
-from cvmdx_jax.diffusion import GuidanceConfig, Schedule, ddim_sample, ddpm_sample, guided_v_fn
+from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
+                                 ddpm_sample, guided_v_fn, official_ddim_sample)
 from cvmdx_jax.models.unet1d import apply_unet
 from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
 SAMPLERS = ("ddim", "ddpm")
+MODES = ("paper", "official")
 STATIC_ARGNAMES = ("graphdef", "null_token", "config")  # of `predict_batch` under jax.jit
 
 
@@ -28,6 +30,9 @@ class SamplingConfig:
   Attributes:
     num_samples: N samples per scenario.
     sampler: "ddim" (S steps) or "ddpm" (all T steps, the cVMD way).
+    mode: "paper" (the paper's equations) or "official" (the official code's guided
+      DDIM loop: `diffusion.official_ddim_sample`, S - 1 updates, weights from
+      guidance.w_min to guidance.w_max_base over the step index, no delta).
     steps: S, DDIM steps.
     eta: DDIM noise (0 = deterministic).
     clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
@@ -40,6 +45,7 @@ class SamplingConfig:
 
   num_samples: int = 9
   sampler: str = "ddim"
+  mode: str = "paper"
   steps: int = 10
   eta: float = 0.0
   clip_x0: float | None = 1.0
@@ -50,6 +56,9 @@ class SamplingConfig:
   def __post_init__(self):
     if self.sampler not in SAMPLERS:
       raise ValueError(f"sampling.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
+    if self.mode not in MODES or (self.mode == "official" and self.sampler != "ddim"):
+      raise ValueError(f"sampling.mode must be one of {MODES} ('official' with sampler "
+                       f"'ddim'), got {self.mode!r} with {self.sampler!r}")
     if self.num_samples < 1:
       raise ValueError(f"sampling.num_samples must be >= 1, got {self.num_samples}")
 
@@ -77,9 +86,14 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
   """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2)."""
   n = config.num_samples
   model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c)
+  shape = (n, constants.T_PRED, 2)
+  if config.mode == "official":
+    return official_ddim_sample(
+        cond_uncond_v_fn(model_fn, jnp.full((n,), q), null_token), key, shape, schedule,
+        steps=config.steps, eta=config.eta, clip_x0=config.clip_x0,
+        w_start=config.guidance.w_min, w_end=config.guidance.w_max_base)
   v_fn = guided_v_fn(model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule,
                      config.guidance)
-  shape = (n, constants.T_PRED, 2)
   if config.sampler == "ddpm":
     return ddpm_sample(v_fn, key, shape, schedule, clip_x0=config.clip_x0)
   return ddim_sample(v_fn, key, shape, schedule, steps=config.steps, eta=config.eta,

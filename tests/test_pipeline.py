@@ -157,3 +157,21 @@ def test_codebook_health_script(runs, tmp_path):
                              [err.mean(), err[:, -1].mean()], atol=1e-3)
   for kind in ("cvq", "vq"):
     assert all(np.isfinite(float(v)) for v in cells[kind][-2:])
+
+
+def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, monkeypatch):
+  from tests.models import official_fixture
+  checkpoint = tmp_path / "ema_0.9999_000100.pt"
+  official_fixture.write_pt(checkpoint, official_fixture.state_dict(np.random.default_rng(0), 8),
+                            monkeypatch)  # Q = 8, the tiny tokeniser's codebook size
+  proc = subprocess.run(
+      [sys.executable, str(REPO / "experiments" / "import_official.py"),
+       f"--checkpoint={checkpoint}", f"--workdir={tmp_path / 'official'}",
+       f"--tokenizer_dir={runs / 'tokenizer'}"],
+      env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 0, proc.stderr[-3000:]
+  predictor = Predictor.load(runs / "tokenizer", tmp_path / "official")
+  assert predictor.sampling.mode == "official" and predictor.denoiser.unet.num_tokens == 8
+  out = predictor(dataset.load_split(runs / "data", "test").take(np.arange(2)), seed=0)
+  assert out.prediction.trajectories.shape == (2, 9, 125, 2)
+  assert np.isfinite(out.prediction.trajectories).all()

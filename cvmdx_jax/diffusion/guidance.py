@@ -7,11 +7,14 @@
 
 The official cVMDx code also runs the cosine the other way round (w_min at the
 noisiest step, w_max at the last): `direction="official"` uses t -> T - t.
+`official_step_weights` is the official DDIM loop's own schedule (over the step
+index, without delta), for `samplers.official_ddim_sample`.
 """
 
 import dataclasses
 
 import jax.numpy as jnp
+import numpy as np
 
 from cvmdx_jax.diffusion import param
 
@@ -59,6 +62,37 @@ def combine_eps(eps_cond, eps_uncond, w, form: str = "paper"):
   return eps_uncond + w * (eps_cond - eps_uncond)
 
 
+def official_step_weights(num_updates: int, start: float = 0.1, end: float = 1.0) -> np.ndarray:
+  """The official DDIM loop's guidance weights, one per update i = 0..n-1 (noisiest
+  first): start + (end - start) (1 - cos(pi i / (n - 1))) / 2; the official loop
+  does not use delta (its Mahalanobis weighting is commented out).
+
+  Returns:
+    (n,) float32; n = 9: 0.1, 0.134, 0.232, 0.378, 0.55, 0.722, 0.868, 0.966, 1.0.
+  """
+  u = (1.0 - np.cos(np.linspace(0.0, np.pi, num_updates))) / 2.0
+  return (start + (end - start) * u).astype(np.float32)
+
+
+def cond_uncond_v_fn(model_fn, cond, null_cond):
+  """`fn(x_t, t) -> (v_cond, v_uncond)`: both branches in one batched model call.
+
+  Args:
+    model_fn: (x_t (B, ...), t (B,), cond (B,)) -> v (B, ...).
+    cond: (B,) condition tokens.
+    null_cond: the unconditional token (scalar).
+  """
+  cond = jnp.asarray(cond)
+  null = jnp.full_like(cond, null_cond)
+
+  def fn(x_t, t):
+    v = model_fn(jnp.concatenate([x_t, x_t]), jnp.concatenate([t, t]),
+                 jnp.concatenate([cond, null]))
+    return tuple(jnp.split(v, 2))
+
+  return fn
+
+
 def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
                 config: GuidanceConfig = GuidanceConfig()):
   """Wraps a conditional v-model into a guided `v_fn(x_t, t)` for the samplers.
@@ -76,14 +110,11 @@ def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
     schedule: a `Schedule` (for T).
     config: `GuidanceConfig`.
   """
-  cond = jnp.asarray(cond)
-  null = jnp.full_like(cond, null_cond)
+  branches = cond_uncond_v_fn(model_fn, cond, null_cond)
   num_steps = schedule.num_steps
 
   def v_fn(x_t, t):
-    v = model_fn(jnp.concatenate([x_t, x_t]), jnp.concatenate([t, t]),
-                 jnp.concatenate([cond, null]))
-    v_cond, v_uncond = jnp.split(v, 2)
+    v_cond, v_uncond = branches(x_t, t)
     w = guidance_weight(t, delta, num_steps, config)
     return combine_eps(v_cond, v_uncond, w, config.form)
 

@@ -50,3 +50,17 @@ def ddim_timesteps(num_steps: int, steps: int) -> np.ndarray:
     raise ValueError(f"DDIM steps must be in [1, {num_steps}], got {steps}")
   grid = np.round(np.linspace(0, num_steps - 1, steps)).astype(np.int32)
   return grid[::-1].copy()
+
+
+def official_ddim_timesteps(num_steps: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+  """The official cVMDx DDIM grid: floor(linspace(0, T-1, steps))[1:], descending,
+  each step going to the next grid point and the last to t = 0
+  (T = 1000, steps = 10: 999, 888, ..., 111 -> 888, ..., 111, 0; 9 updates).
+
+  Returns:
+    (t, t_prev), each (steps - 1,) int32.
+  """
+  if not 2 <= steps <= num_steps:
+    raise ValueError(f"official DDIM steps must be in [2, {num_steps}], got {steps}")
+  grid = np.floor(np.linspace(0, num_steps - 1, steps)).astype(np.int32)[1:][::-1]
+  return grid.copy(), np.append(grid[1:], 0).astype(np.int32)

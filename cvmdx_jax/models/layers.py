@@ -1,5 +1,10 @@
 """Building blocks of the 1-D U-Net: timestep embedding, FiLM residual block,
-self-attention, resampling. Channels-last: (B, L, C)."""
+self-attention, resampling. Channels-last: (B, L, C).
+
+Conventions of the official cVMDx U-Net: GroupNorm epsilon 1e-5 and a stride-2
+downsampling convolution with padding 1 on both sides (output i sees inputs
+2i - 1, 2i, 2i + 1).
+"""
 
 import math
 
@@ -16,8 +21,12 @@ def timestep_embedding(t, dim: int, max_period: float = 10000.0):
   return jnp.concatenate([jnp.cos(args), jnp.sin(args)], axis=-1)
 
 
-def _norm(channels: int, groups: int, rngs):
-  return nnx.GroupNorm(channels, num_groups=min(groups, channels), rngs=rngs)
+GROUPNORM_EPSILON = 1e-5  # the official code's (PyTorch's) GroupNorm epsilon
+
+
+def group_norm(channels: int, groups: int, rngs):
+  return nnx.GroupNorm(channels, num_groups=min(groups, channels), epsilon=GROUPNORM_EPSILON,
+                       rngs=rngs)
 
 
 class ResBlock(nnx.Module):
@@ -26,10 +35,10 @@ class ResBlock(nnx.Module):
 
   def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
                *, rngs: nnx.Rngs):
-    self.norm1 = _norm(in_ch, groups, rngs)
+    self.norm1 = group_norm(in_ch, groups, rngs)
     self.conv1 = nnx.Conv(in_ch, out_ch, kernel_size=(3,), rngs=rngs)
     self.film = nnx.Linear(emb_dim, 2 * out_ch, rngs=rngs)
-    self.norm2 = _norm(out_ch, groups, rngs)
+    self.norm2 = group_norm(out_ch, groups, rngs)
     self.dropout = nnx.Dropout(dropout)
     self.conv2 = nnx.Conv(out_ch, out_ch, kernel_size=(3,), kernel_init=nnx.initializers.zeros,
                           rngs=rngs)
@@ -63,7 +72,7 @@ class AttentionBlock(nnx.Module):
   """Pre-norm multi-head self-attention over the sequence axis, residual."""
 
   def __init__(self, channels: int, num_heads: int, groups: int, *, rngs: nnx.Rngs):
-    self.norm = _norm(channels, groups, rngs)
+    self.norm = group_norm(channels, groups, rngs)
     self.attn = nnx.MultiHeadAttention(num_heads=num_heads, in_features=channels,
                                        decode=False, rngs=rngs)
 
@@ -72,10 +81,12 @@ class AttentionBlock(nnx.Module):
 
 
 class Downsample(nnx.Module):
-  """Strided convolution, L -> L / 2."""
+  """Strided convolution with padding 1 each side, L -> L / 2 (L even): output i is
+  centred on input 2i."""
 
   def __init__(self, channels: int, *, rngs: nnx.Rngs):
-    self.conv = nnx.Conv(channels, channels, kernel_size=(3,), strides=(2,), rngs=rngs)
+    self.conv = nnx.Conv(channels, channels, kernel_size=(3,), strides=(2,),
+                         padding=((1, 1),), rngs=rngs)
 
   def __call__(self, x):
     return self.conv(x)

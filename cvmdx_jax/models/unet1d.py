@@ -3,8 +3,11 @@
 Reference defaults (cVMDx): 128 base channels, multipliers (1, 2, 3, 4), one
 residual block per level, 4-head self-attention at the two coarsest levels,
 FiLM conditioning from timestep embedding + learned token embedding with one
-extra null token (index `num_tokens`) for classifier-free guidance. The sequence
-is zero-padded from 125 to 128 and cropped back.
+extra null token (index `num_tokens`) for classifier-free guidance. As in the
+official cVMDx code, the sequence is zero-padded centred from 125 to 128 (1 step
+left, 2 right) and the same centred window [1:126] is cropped back; the stride-2
+downsampling pads 1 each side and GroupNorm uses epsilon 1e-5 (`layers`), so
+official checkpoints give the official outputs (`official_import`).
 
 Functional use: `graphdef, params = init_unet(config, key)`, then
 `apply_unet(graphdef, params, x_t, t, q)` inside `jax.jit`.
@@ -18,7 +21,8 @@ from flax import nnx
 
 from cvmdx_jax import constants
 from cvmdx_jax.models import functional
-from cvmdx_jax.models.layers import Downsample, ResAttnBlock, Upsample, timestep_embedding
+from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, Upsample, group_norm,
+                                     timestep_embedding)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +41,8 @@ class UNetConfig:
     dropout: dropout rate inside residual blocks (training only).
     channels: input/output channels (2: a_x, yaw rate).
     length: sequence length (125).
-    padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)).
+    padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)),
+      (padded_length - length) // 2 zeros on the left, the rest on the right.
   """
 
   num_tokens: int = 60
@@ -106,7 +111,7 @@ class UNet1D(nnx.Module):
       if level > 0:
         up_samples.append(Upsample(cur, rngs=rngs))
     self.up_blocks, self.up_samples = nnx.List(up_blocks), nnx.List(up_samples)
-    self.norm_out = nnx.GroupNorm(cur, num_groups=min(config.groups, cur), rngs=rngs)
+    self.norm_out = group_norm(cur, config.groups, rngs)
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
 
@@ -117,7 +122,9 @@ class UNet1D(nnx.Module):
     key = lambda: next(keys, None)
     emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
     emb = emb + self.token_embed(q)
-    h = self.conv_in(jnp.pad(x_t, ((0, 0), (0, cfg.padded_length - x_t.shape[1]), (0, 0))))
+    length = x_t.shape[1]
+    left = (cfg.padded_length - length) // 2
+    h = self.conv_in(jnp.pad(x_t, ((0, 0), (left, cfg.padded_length - length - left), (0, 0))))
     skips, blocks = [h], iter(self.down_blocks)
     for level in range(len(cfg.channel_mult)):
       for _ in range(cfg.num_res_blocks):
@@ -135,7 +142,7 @@ class UNet1D(nnx.Module):
       if level > 0:
         h = next(samples)(h)
     out = self.conv_out(jax.nn.silu(self.norm_out(h)))
-    return out[:, :x_t.shape[1]]
+    return out[:, left:left + length]
 
 
 def init_unet(config: UNetConfig, key: jax.Array):

@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax.models import unet1d
+from flax import nnx
+
+from cvmdx_jax.models import layers, unet1d
 
 TINY = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
                          attention_levels=(1,), num_heads=2, dropout=0.1, padded_length=128)
@@ -105,3 +107,20 @@ def test_no_retracing_across_calls():
 def test_bad_padding_rejected():
   with pytest.raises(ValueError, match="padded_length"):
     unet1d.UNetConfig(padded_length=126)
+
+
+def test_downsampling_is_centred_on_even_inputs():
+  """Official convention (stride 2, padding 1): output i sees inputs 2i-1, 2i, 2i+1."""
+  down = layers.Downsample(1, rngs=nnx.Rngs(0))
+  x = jnp.arange(1.0, 9.0)[None, :, None]  # 1..8 at positions 0..7
+  for tap, want in ((0, [0, 2, 4, 6]), (1, [1, 3, 5, 7]), (2, [2, 4, 6, 8])):
+    down.conv.kernel[...] = jnp.zeros((3, 1, 1)).at[tap].set(1.0)
+    down.conv.bias[...] = jnp.zeros(1)
+    np.testing.assert_array_equal(down(x)[0, :, 0], want)
+
+
+def test_group_norm_epsilon_is_the_official_1e5():
+  norm = layers.group_norm(4, 2, nnx.Rngs(0))
+  x = jnp.array([[[0.0, 0.0, 0.0, 0.0], [2e-3, 2e-3, 2e-3, 2e-3]]])  # (1, 2, 4): var 1e-6
+  want = np.array([-1e-3, 1e-3]) / np.sqrt(1e-6 + 1e-5)  # per group, (x - mean) / sqrt(var + eps)
+  np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)

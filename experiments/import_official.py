@@ -1,0 +1,91 @@
+"""Imports an official cVMDx checkpoint (PyTorch state dict, no torch needed) as a
+diffusion run directory that `load_denoiser` and `Predictor.load` accept.
+
+  PYTHONPATH=. python experiments/import_official.py --checkpoint=ema_0.9999_080000.pt \\
+      --workdir=runs/official_diffusion [--tokenizer_dir=runs/tokenizer]
+
+Q is read from the label embedding (Q + 1 rows, the last the null label). The run's
+config is `configs/diffusion.py:reference` with the checkpoint's U-Net sizes, control
+scale (4 m/s^2, 0.7 rad/s) and `sampling.mode="official"` (override at inference
+with `Predictor.load(..., sampling=...)`). `--tokenizer_dir` pairs the run with a
+tokeniser of ours (its codebook size must be Q), so that `Predictor.load` accepts the
+pair; without it the run loads with `load_denoiser` only. `--workdir` must not exist;
+it appears complete or not at all.
+"""
+
+import hashlib
+import shutil
+import tempfile
+from pathlib import Path
+
+from absl import flags
+import jax
+import jax.numpy as jnp
+
+from configs import diffusion as diffusion_configs
+from cvmdx_jax import checkpointing, cli, normalization, runs
+from cvmdx_jax.models import official_import
+
+_CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
+_WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
+_KEY = flags.DEFINE_string("key", None, "Entry of a dict holding several state dicts.")
+_NUM_HEADS = flags.DEFINE_integer("num_heads", official_import.OFFICIAL_NUM_HEADS,
+                                  "Attention heads of the official model (not stored in it).")
+_TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
+                                     "Tokeniser run to pair with (codebook size Q).")
+flags.mark_flags_as_required(["checkpoint", "workdir"])
+
+
+def write_run(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
+  """Writes a diffusion run directory in the `cvmdx_jax.runs` format: config.json,
+  model.json and checkpoints/1 holding {params, ema_params} (both the imported
+  weights) and step 0, with metadata {"fingerprint": fingerprint}."""
+  runs.write_diffusion_dir(workdir, config, cfg)
+  state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
+           "step": jnp.zeros((), jnp.int32)}
+  with checkpointing.Checkpoints(workdir / runs.CHECKPOINTS, keep=1) as ckpts:
+    ckpts.save(1, state, {"fingerprint": fingerprint})
+
+
+def main(argv):
+  del argv
+  checkpoint, workdir = Path(_CHECKPOINT.value), Path(_WORKDIR.value)
+  if workdir.exists():
+    raise ValueError(f"--workdir={workdir} exists; give a new directory")
+  if not checkpoint.is_file():
+    raise FileNotFoundError(f"--checkpoint={checkpoint}: no such file")
+  cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
+                                              num_heads=_NUM_HEADS.value)
+  tokens_meta = {}
+  config = diffusion_configs.get_config("reference")
+  config.tokenizer_dir = ""  # none paired
+  if _TOKENIZER_DIR.value:
+    bundle = runs.load_tokenizer(_TOKENIZER_DIR.value)
+    if bundle.config.quantizer.codebook_size != cfg.num_tokens:
+      raise ValueError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
+                       f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
+                       f"{cfg.num_tokens}")
+    tokens_meta = {"checkpoint": {"fingerprint": bundle.fingerprint.to_dict(), "step": None}}
+    config.tokenizer_dir = _TOKENIZER_DIR.value
+  for field in ("base_channels", "num_res_blocks", "emb_mult", "num_heads", "groups",
+                "dropout"):
+    config.model[field] = getattr(cfg, field)
+  config.model.channel_mult = cfg.channel_mult
+  config.model.attention_levels = cfg.attention_levels
+  config.diffusion.control_scale = normalization.PAPER_SCALE  # the official (4, 0.7)
+  config.sampling.mode = "official"
+  digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
+  fingerprint = runs.diffusion_fingerprint(config, cfg, f"official:{digest}", tokens_meta)
+  workdir.parent.mkdir(parents=True, exist_ok=True)
+  tmp = Path(tempfile.mkdtemp(prefix=f".{workdir.name}.", dir=workdir.parent))
+  try:
+    write_run(tmp / "run", config, cfg, params, fingerprint)
+    (tmp / "run").rename(workdir)
+  finally:
+    shutil.rmtree(tmp)
+  print(f"imported {checkpoint} (Q = {cfg.num_tokens}, "
+        f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}")
+
+
+if __name__ == "__main__":
+  cli.run(main)
