@@ -11,6 +11,7 @@ import hashlib
 import json
 from pathlib import Path
 
+from cvmdx_jax import locking
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo
 from cvmdx_jax.data.errors import DataError
 
@@ -60,6 +61,7 @@ def _split_ids(config, available, where) -> dict:
   return out
 
 
+@locking.holds("data_dir")
 def build(config, data_dir) -> dict:
   """Builds (or reuses) the cached splits.
 

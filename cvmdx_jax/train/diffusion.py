@@ -18,7 +18,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import atomic, normalization, tokens as tokens_lib
+from cvmdx_jax import atomic, locking, normalization, sharding, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import GuidanceConfig, cosine_schedule, v_loss
 from cvmdx_jax.inference import SamplingConfig
@@ -122,6 +122,7 @@ def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
   return graphdef, make_init_fn(cfg, tx), step_fn
 
 
+@locking.holds("workdir")
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
@@ -134,9 +135,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
-  atomic.write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
-                                       "total_steps": total_steps})
+  if sharding.is_primary():
+    atomic.write_json(workdir / "config.json", json.loads(config.to_json_best_effort()))
+    atomic.write_json(workdir / "model.json", {"unet": dataclasses.asdict(cfg),
+                                               "total_steps": total_steps})
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,

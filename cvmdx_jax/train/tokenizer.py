@@ -24,7 +24,8 @@ import numpy as np
 import optax
 from flax import nnx
 
-from cvmdx_jax import atomic, checkpointing, scenario_norm, tokens as tokens_lib, uncertainty
+from cvmdx_jax import atomic, checkpointing, locking, scenario_norm, sharding, uncertainty
+from cvmdx_jax import tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.models import quantizer as quantizer_lib
@@ -188,9 +189,11 @@ def _claim_workdir(workdir: Path, run: dict) -> None:
     checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], run["fingerprint"],
                                  str(workdir))
   workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(path, run, indent=1, sort_keys=True)
+  if sharding.is_primary():
+    atomic.write_json(path, run, indent=1, sort_keys=True)
 
 
+@locking.holds("workdir")
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike, *,
                        splits: dict[str, Scenarios] | None = None) -> dict:
   """Trains the tokeniser (or resumes / returns a finished run) and writes its outputs.
@@ -238,6 +241,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       batch_size=config.batch_size, num_epochs=config.num_epochs, seed=config.seed,
       fingerprint=fp, checkpoint_every=config.checkpoint_every, keep=config.keep,
       epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}")
+  if not sharding.is_primary():  # process 0 writes the tokens of a multi-process run
+    return state
 
   workdir = Path(workdir)
   meta = {"dataset_id": dataset_id, "data_dir": str(config.get("data_dir", "")),
