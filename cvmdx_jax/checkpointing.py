@@ -148,7 +148,7 @@ class Checkpoints:
     self._ckptr = None
     if not writable:
       return
-    for p in partial:
+    for p in partial if jax.process_index() == 0 else ():  # one process cleans up
       shutil.rmtree(p)
     policy = ocp.training.preservation_policies
     try:

@@ -86,8 +86,9 @@ def claim_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.Tok
     checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], fingerprint,
                                  str(workdir))
   workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(path, {"model": dataclasses.asdict(model_cfg), "fingerprint": fingerprint},
-                    indent=1, sort_keys=True)
+  if sharding.is_primary():  # one writer under jax.distributed
+    atomic.write_json(path, {"model": dataclasses.asdict(model_cfg), "fingerprint": fingerprint},
+                      indent=1, sort_keys=True)
 
 
 def write_diffusion_dir(workdir: str | os.PathLike, config: ml_collections.ConfigDict,

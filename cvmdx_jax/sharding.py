@@ -4,9 +4,15 @@ One 1-D mesh with axis "data": model state is replicated on every device, batche
 split along their leading (example) dimension. Training and batched inference both use
 it; on CPU, `XLA_FLAGS=--xla_force_host_platform_device_count=N` (set before jax is
 imported) gives N devices to test with.
+
+Several processes (hosts): `initialize_distributed` joins a `jax.distributed` run described
+by the environment; the mesh then spans the devices of every process, each process puts only
+its own rows of a global batch on its own devices (`shard_batch`), and `local_copy` gives a
+process its copy of a replicated state for single-process code.
 """
 
-from collections.abc import Sequence
+import os
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -15,6 +21,57 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 DATA_AXIS = "data"
+ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"
+ENV_NUM_PROCESSES = "JAX_NUM_PROCESSES"
+ENV_PROCESS_ID = "JAX_PROCESS_ID"
+
+
+def _env_int(env: Mapping[str, str], name: str) -> int | None:
+  if not env.get(name):
+    return None
+  try:
+    return int(env[name])
+  except ValueError:
+    raise ValueError(f"environment variable {name}={env[name]!r} must be an integer") from None
+
+
+def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, int]:
+  """Joins a multi-process `jax.distributed` run when the environment describes one.
+
+  Must run before anything touches a JAX backend. The run is described by
+  JAX_COORDINATOR_ADDRESS (host:port of process 0, reachable from every process),
+  JAX_NUM_PROCESSES and JAX_PROCESS_ID (0 .. JAX_NUM_PROCESSES - 1); without
+  JAX_NUM_PROCESSES (or with 1) nothing happens. On CPU the processes talk through gloo.
+
+  Args:
+    env: the environment (default `os.environ`).
+
+  Returns:
+    (process index, process count).
+
+  Raises:
+    ValueError: a variable is not an integer, the coordinator address is missing, or the
+      process id is out of range (named in the message).
+  """
+  env = os.environ if env is None else env
+  count, index = _env_int(env, ENV_NUM_PROCESSES), _env_int(env, ENV_PROCESS_ID)
+  if jax.distributed.is_initialized() or count is None or count == 1:
+    return jax.process_index(), jax.process_count()
+  if not env.get(ENV_COORDINATOR):
+    raise ValueError(f"{ENV_NUM_PROCESSES}={count} needs {ENV_COORDINATOR}=host:port of "
+                     "process 0")
+  if index is None or not 0 <= index < count:
+    raise ValueError(f"{ENV_PROCESS_ID}={index} must be in 0..{count - 1} "
+                     f"({ENV_NUM_PROCESSES}={count})")
+  jax.config.update("jax_cpu_collectives_implementation", "gloo")
+  jax.distributed.initialize(coordinator_address=env[ENV_COORDINATOR], num_processes=count,
+                             process_id=index)
+  return jax.process_index(), jax.process_count()
+
+
+def is_primary() -> bool:
+  """True in process 0, the one process that writes logs and JSON files of a run."""
+  return jax.process_index() == 0
 
 
 def data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
@@ -56,6 +113,9 @@ def shard_batch(batch: Any, mesh: Mesh) -> Any:
     batch: a pytree of arrays, all with the same leading dimension B.
     mesh: the mesh from `data_mesh`.
 
+  With several processes every process passes the same global `batch` (host arrays) and
+  transfers only the rows of its own devices.
+
   Returns:
     The same pytree as global `jax.Array`s sharded `P("data")`.
 
@@ -66,7 +126,17 @@ def shard_batch(batch: Any, mesh: Mesh) -> Any:
   if len(sizes) != 1 or None in sizes:
     raise ValueError(f"shard_batch: leaves need one common leading dimension, got {sizes}")
   check_divisible(sizes.pop(), mesh, "batch leading dimension")
-  return jax.device_put(batch, batch_sharding(mesh))
+  split = batch_sharding(mesh)
+  if split.is_fully_addressable:
+    return jax.device_put(batch, split)
+  return jax.tree.map(lambda x: jax.make_array_from_callback(
+      np.shape(x), split, lambda index: np.asarray(x[index])), batch)
+
+
+def local_copy(tree: Any) -> Any:
+  """This process's copy (on its first local device) of a replicated pytree; as is when
+  one process addresses every device."""
+  return jax.tree.map(lambda x: x if x.is_fully_addressable else x.addressable_data(0), tree)
 
 
 def pad_batch(batch: Any, multiple: int) -> tuple[Any, np.ndarray]:

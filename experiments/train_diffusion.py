@@ -9,6 +9,7 @@ from absl import app, flags, logging
 import jax
 from ml_collections import config_flags
 
+from cvmdx_jax import sharding
 from cvmdx_jax.train import diffusion
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
@@ -20,6 +21,7 @@ flags.mark_flags_as_required(["config", "workdir"])
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  sharding.initialize_distributed()
   logging.info("JAX devices: %s", jax.devices())
   diffusion.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
 

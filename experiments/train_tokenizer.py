@@ -11,6 +11,7 @@ from ml_collections import config_flags
 
 import jax
 
+from cvmdx_jax import sharding
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
@@ -22,6 +23,7 @@ flags.mark_flags_as_required(["config", "workdir"])
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Too many command-line arguments: {argv[1:]}")
+  sharding.initialize_distributed()
   logging.info("devices: %s", jax.devices())
   tokenizer.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
   logging.info("tokens written to %s/tokens", _WORKDIR.value)

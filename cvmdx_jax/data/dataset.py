@@ -12,7 +12,7 @@ how `data_dir`, `highd_dir` or `mat_dir` is spelled.
 import json
 from pathlib import Path
 
-from cvmdx_jax import atomic
+from cvmdx_jax import atomic, locking
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo
 from cvmdx_jax.data.errors import DataError
 
@@ -57,6 +57,7 @@ def _split_ids(config, available, where) -> dict:
   return out
 
 
+@locking.holds("data_dir")
 def build(config, data_dir) -> dict:
   """Builds (or reuses) the cached splits.
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, constants, tokens as tokens_lib
+from cvmdx_jax import atomic, constants, locking, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, scoring
@@ -21,6 +21,7 @@ from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.predict import Predictor
 
 
+@locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
         figures_per_class: int = 3, sampling=None) -> dict:

@@ -15,7 +15,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import normalization, runs, tokens as tokens_lib
+from cvmdx_jax import locking, normalization, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
@@ -90,6 +90,7 @@ def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
   return graphdef, make_init_fn(cfg, tx), step_fn
 
 
+@locking.holds("workdir")
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
@@ -100,7 +101,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
-  runs.write_diffusion_dir(workdir, config, cfg)
+  if sharding.is_primary():
+    runs.write_diffusion_dir(workdir, config, cfg)
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,

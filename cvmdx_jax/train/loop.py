@@ -10,6 +10,12 @@ same command ends bit-identical to one that never stopped.
 
 Epochs are counted from 1 in the metrics lines, in `epoch_end_fn` and as checkpoint
 steps: checkpoint `k` holds the state after k complete epochs.
+
+The workdir is held (`locking.hold`) for the whole run, so a second run on it is refused.
+Under `jax.distributed` (see `sharding.initialize_distributed`) every process runs `train`
+with the same arguments and data: the mesh spans all processes' devices, each process feeds
+the rows of every global batch that its devices hold, orbax writes one checkpoint together,
+and only process 0 writes `metrics.jsonl`; the result matches a single-process run.
 """
 
 import json
@@ -23,7 +29,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from cvmdx_jax import atomic, checkpointing, runs, sharding
+from cvmdx_jax import atomic, checkpointing, locking, runs, sharding
 from cvmdx_jax.checkpointing import CheckpointMismatchError
 
 State = Any
@@ -103,6 +109,7 @@ def _to_json_value(value: Any) -> Any:
   return np.asarray(jax.device_get(value)).tolist()
 
 
+@locking.holds("workdir")
 def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], step_fn: StepFn,
           data: Mapping[str, np.ndarray], batch_size: int, num_epochs: int, seed: int,
           fingerprint: Any, checkpoint_every: int = 1, keep: int = 2,
@@ -124,14 +131,17 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
       each checkpoint; resuming with another raises CheckpointMismatchError.
     checkpoint_every: save after every this many epochs (and after the last).
     keep: number of latest checkpoints kept.
-    epoch_end_fn: `epoch_end_fn(state, epoch) -> dict` of extra JSON-able values logged.
+    epoch_end_fn: `epoch_end_fn(state, epoch) -> dict` of extra JSON-able values logged
+      (`state` as `train` returns it).
     desc: progress bar label.
 
   Returns:
-    The state after `num_epochs` epochs, replicated on the mesh.
+    The state after `num_epochs` epochs, replicated on the mesh (with several processes:
+    `sharding.local_copy` of it, so that single-process code can go on with it).
 
   Raises:
     ValueError: bad arguments (e.g. batch_size not divisible by the device count).
+    locking.WorkdirLockedError: another process holds the workdir.
     CheckpointMismatchError: the workdir's checkpoint belongs to another run or is broken.
     TrainingError: a non-finite loss or grad_norm (names the global step and epoch).
   """
@@ -160,9 +170,11 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
       checkpointing.check_metadata(saved, run_meta, str(ckpts.root / str(done)))
     else:
       state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
-    _trim_metrics(workdir / runs.METRICS, done)
+    primary = sharding.is_primary()
+    if primary:
+      _trim_metrics(workdir / runs.METRICS, done)
     with tqdm(total=num_epochs * steps_per_epoch, initial=min(done, num_epochs) * steps_per_epoch,
-              desc=desc, unit="step", dynamic_ncols=True) as bar:
+              desc=desc, unit="step", dynamic_ncols=True, disable=not primary) as bar:
       for epoch in range(done, num_epochs):
         start, first_step = time.perf_counter(), epoch * steps_per_epoch
         order = np.random.default_rng([seed, epoch]).permutation(m)
@@ -178,14 +190,16 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
           bar.update()
         summary = _epoch_summary(jax.device_get(metrics), weight, epoch + 1, first_step)
         if epoch_end_fn is not None:
-          summary.update({k: _to_json_value(v) for k, v in epoch_end_fn(state, epoch + 1).items()})
+          summary.update({k: _to_json_value(v)
+                          for k, v in epoch_end_fn(sharding.local_copy(state), epoch + 1).items()})
         bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
         line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
                 "seconds": round(time.perf_counter() - start, 4), **summary}
-        atomic.append_jsonl(workdir / runs.METRICS, line)
+        if primary:
+          atomic.append_jsonl(workdir / runs.METRICS, line)
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
           ckpts.save(epoch + 1, state, run_meta)
-  return state
+  return sharding.local_copy(state)
 
 
 def load_latest(workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State],

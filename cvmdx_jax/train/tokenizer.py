@@ -21,7 +21,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import runs, tokens as tokens_lib
+from cvmdx_jax import locking, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
@@ -112,6 +112,7 @@ def _load_splits(config) -> tuple[dict[str, Scenarios], str]:
   return splits, dataset_lib.dataset_id(config.data_dir)
 
 
+@locking.holds("workdir")
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike, *,
                        splits: dict[str, Scenarios] | None = None) -> dict:
   """Trains the tokeniser (or resumes / returns a finished run) and writes its outputs.
@@ -158,6 +159,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
       keep=config.train.keep,
       epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}")
+  if not sharding.is_primary():  # process 0 writes the tokens of a multi-process run
+    return state
 
   workdir = Path(workdir)
   meta = {"dataset_id": dataset_id, "data_dir": str(config.get("data_dir", "")),

@@ -4,8 +4,10 @@ Tasks (`--task`): "toy" (the MLP of toy.py), "diffusion" and "tokenizer" (the re
 step functions with their `:tiny` configs on synthetic data).
 
 Used by the tests for what needs a fresh process: several CPU devices (XLA_FLAGS must be
-set before jax is imported) and being killed with SIGKILL. Prints one line
-"epoch <k>" per finished epoch and finally one JSON line {"devices", "params", "loss"}.
+set before jax is imported), being killed with SIGKILL, and several processes of one
+`jax.distributed` run (JAX_NUM_PROCESSES etc., see `cvmdx_jax.sharding`). Prints one line
+"epoch <k>" per finished epoch and finally one JSON line {"devices", "process", "params",
+"loss"} ("loss" from metrics.jsonl, which process 0 writes).
 Run: PYTHONPATH=. python tests/train/toy_job.py --workdir=DIR [--epochs=..].
 """
 
@@ -17,6 +19,7 @@ import time
 import jax
 import numpy as np
 
+from cvmdx_jax import sharding
 from cvmdx_jax.train import loop
 from tests.train import toy
 
@@ -59,6 +62,7 @@ def main() -> int:
   p.add_argument("--task", default="toy", choices=("toy", "diffusion", "tokenizer"))
   p.add_argument("--sleep", type=float, default=0.0, help="seconds to idle after each epoch")
   a = p.parse_args()
+  sharding.initialize_distributed()
   init_fn, step_fn, data = task(a.task, a.m)
 
   def epoch_end(state, epoch):
@@ -74,10 +78,12 @@ def main() -> int:
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
-  with open(f"{a.workdir}/metrics.jsonl") as f:
-    last = json.loads(f.read().splitlines()[-1])
-  print(json.dumps({"devices": jax.device_count(), "params": toy.flat_params(state).tolist(),
-                    "loss": last["loss"]}), flush=True)
+  loss = None
+  if sharding.is_primary():
+    with open(f"{a.workdir}/metrics.jsonl") as f:
+      loss = json.loads(f.read().splitlines()[-1])["loss"]
+  print(json.dumps({"devices": jax.device_count(), "process": jax.process_index(),
+                    "params": toy.flat_params(state).tolist(), "loss": loss}), flush=True)
   return 0
 
 
