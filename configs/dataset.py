@@ -1,32 +1,55 @@
 """Dataset settings for experiments/make_dataset.py.
 
 Run: `PYTHONPATH=. .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py
---data_dir=data/sumo` (presets `:small`, `:tiny`; other sources with
-`--config.source=highd --config.highd_dir=/path/to/highD/data` or
+--data_dir=data/sumo` (presets after the path: `:small` for the demo, `:tiny` for tests;
+other sources with `--config.source=highd --config.highd_dir=/path/to/highD/data` or
 `--config.source=cvmd_mat --config.mat_dir=/path/with/train_and_test`).
 
-Default (SUMO): 4 recordings of 10 simulated minutes on a 1 km, 3+3-lane section; recordings
-1-3 train, 4 test; class-balanced, >= 9,000 train and >= 3,000 test scenarios.
+Splits, all by recording (a recording's scenarios are in one split only):
+- sumo: train / val / test on roads and traffic drawn from the ranges below, and test_ood on
+  a held-out road (`sumo.held_out`: 4 lanes per direction of 3.5 m, 110 km/h, a denser flow
+  per lane) that no other recording has. Recordings are numbered in that order
+  (`sumo.recordings`); each one's road, traffic and drivers are in
+  `<data_dir>/recordings/plans.json` (`cvmdx_jax.data.sumo_plan`).
+- highd: `splits` (recording ids): test = ids ending in 3, 6 or 9 (18 of 60), val = ids
+  ending in 0 (6 of 60), train = the other 36.
+- cvmd_mat: `mat_dir/train` and `mat_dir/test`; val = `mat_val_fraction` of each class's
+  train files, drawn with `seed`.
+
+Default SUMO data: 10 train, 2 val and 3 test recordings of 240 s and 2 test_ood recordings
+of 100 s (>= 9,000 train scenarios; sizes and build times in BUILD_NOTES.md). Ranges, one
+draw per recording, chosen to cover highD-like behaviour (car speeds mostly 80-130 km/h,
+trucks 80-90 km/h, 10-30 % trucks, lane changes over ~4-6 s): 3 or 2 lanes of 3.75 m, speed
+limit 100, 120 or 130 km/h, 500-1000 veh/h per lane, Krauss or IDM car following; driver
+ranges in `sumo.car` / `sumo.truck` (SUMO vType parameters, SI units).
+`:small` (the demo): 6 / 1 / 2 recordings of 120 s and 1 test_ood of 40 s.
 """
 
 import ml_collections
 
-# highD split by recording (fixed): test = ids ending in 3, 6 or 9 (18 of 60, ~30 %).
+from configs import common
+
+# highD split by recording (fixed): test = ids ending in 3, 6 or 9, val = ids ending in 0.
 HIGHD_TEST = tuple(i for i in range(1, 61) if i % 10 in (3, 6, 9))
-HIGHD_TRAIN = tuple(i for i in range(1, 61) if i not in HIGHD_TEST)
+HIGHD_VAL = tuple(i for i in range(1, 61) if i % 10 == 0)
+HIGHD_TRAIN = tuple(i for i in range(1, 61) if i not in HIGHD_TEST + HIGHD_VAL)
 
 
-def get_config(preset: str = "default") -> ml_collections.ConfigDict:
-  """preset: 'default', 'small' or 'tiny'."""
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+  """arg: '' (default), 'small' or 'tiny'."""
+  arg = common.parse_arg(arg, small=False, tiny=False)
   c = ml_collections.ConfigDict()
   c.source = "sumo"  # sumo | highd | cvmd_mat
-  c.seed = 0  # SUMO seeds and balancing draw
+  c.seed = 0  # draw of the cvmd_mat val files
   c.highd_dir = ""  # directory with XX_tracks.csv etc. (source=highd)
   c.mat_dir = ""  # directory with train/ and test/ class folders (source=cvmd_mat)
-  # Fixed split by recording id (source sumo / highd).
+  c.mat_val_fraction = 0.15  # share of each class's train files moved to val (cvmd_mat)
+  # Recording ids per split (source=highd); an empty test_ood is not built.
   c.splits = ml_collections.ConfigDict()
-  c.splits.train = (1, 2, 3)
-  c.splits.test = (4,)
+  c.splits.train = HIGHD_TRAIN
+  c.splits.val = HIGHD_VAL
+  c.splits.test = HIGHD_TEST
+  c.splits.test_ood = ()
 
   c.extraction = ml_collections.ConfigDict()
   c.extraction.lc_offsets_s = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5)  # s before crossing
@@ -36,31 +59,62 @@ def get_config(preset: str = "default") -> ml_collections.ConfigDict:
   c.extraction.control_smoothing = 1e-2  # control-difference penalty of the controls fit
   c.extraction.control_iterations = 8  # Gauss-Newton steps of the controls fit
 
-  c.sumo = ml_collections.ConfigDict()
-  c.sumo.seed = 0  # SUMO seed = seed * 1000 + recording id
-  c.sumo.num_recordings = 4  # recordings 1..num_recordings
-  c.sumo.workers = 2  # SUMO processes at once
-  c.sumo.lanes = 3  # lanes per carriageway
-  c.sumo.lane_width_m = 3.75
-  c.sumo.median_m = 2.0  # gap between the carriageways
-  c.sumo.road_length_m = 1400.0  # simulated road
-  c.sumo.section_start_m = 250.0  # visible ("recorded") section start
-  c.sumo.section_length_m = 1000.0  # visible section (highD sees ~420 m)
-  c.sumo.image_top_m = 8.0  # image y of the northern road edge
-  c.sumo.speed_limit_ms = 36.11  # road speed (130 km/h); types scale it by speedFactor
-  c.sumo.warmup_s = 60.0  # simulated before frame 1
-  c.sumo.duration_s = 600.0  # recorded time per recording
-  c.sumo.flow_veh_per_hour = 2400.0  # Poisson arrivals per carriageway
-  c.sumo.lateral_resolution = 0.8  # sublane width, m
+  s = c.sumo = ml_collections.ConfigDict()
+  s.seed = 0  # SUMO seed = seed * 1000 + recording id; plan draws seeded by (seed, id)
+  s.recordings = ml_collections.ConfigDict(  # recordings per split, numbered 1.. in this order
+      {"train": 10, "val": 2, "test": 3, "test_ood": 2})
+  s.workers = 2  # SUMO processes at once
+  s.warmup_s = 60.0  # simulated before frame 1
+  s.duration_s = 240.0  # recorded time per recording
+  # Geometry shared by every road.
+  s.median_m = 2.0  # gap between the carriageways
+  s.road_length_m = 1400.0  # simulated road
+  s.section_start_m = 250.0  # visible ("recorded") section start
+  s.section_length_m = 1000.0  # visible section (highD sees ~420 m)
+  s.image_top_m = 8.0  # image y of the northern road edge
+  s.lateral_resolution = 0.8  # sublane width, m
+  # Road and traffic of the train / val / test recordings.
+  s.lanes = (3, 2)  # lanes per direction, cycled over each split's recordings
+  s.lane_width_m = 3.75
+  s.speed_limits_kmh = (100.0, 120.0, 130.0)  # one drawn per recording
+  s.flow_per_lane = (500.0, 1000.0)  # veh/h per lane and carriageway, uniform
+  s.truck_share = (0.1, 0.3)  # share of trucks in the flow, uniform
+  s.car_following = ("Krauss", "IDM")  # one drawn per recording
+  # Drivers: per recording a centre in each (low, high) range, per vType centre +- spread.
+  s.car_types = 3  # car vTypes per recording
+  s.truck_types = 2  # truck vTypes per recording
+  s.type_spread = 0.3  # fraction of each range a vType may lie from the recording's centre
+  s.car = ml_collections.ConfigDict({
+      "length_m": (4.2, 5.0), "width_m": (1.75, 2.0),
+      "speed_factor": (0.95, 1.15),  # mean desired speed / speed limit
+      "speed_dev": (0.08, 0.15),  # per-vehicle spread of the speed factor
+      "accel": (1.5, 3.0), "decel": (3.5, 5.0), "sigma": (0.1, 0.5), "tau": (0.9, 1.5),
+      "lc_speed_gain": (1.0, 6.0), "lc_keep_right": (0.5, 3.0),  # log-uniform
+      "max_speed_lat": (0.7, 1.3), "lc_accel_lat": (0.6, 1.2)})
+  s.truck = ml_collections.ConfigDict({
+      "length_m": (12.0, 18.0), "width_m": (2.45, 2.55),
+      "speed_factor": (1.0, 1.0), "speed_dev": (0.03, 0.05),
+      "desired_max_speed_kmh": (80.0, 92.0),  # trucks keep to their own cap
+      "accel": (0.6, 1.2), "decel": (3.0, 4.0), "sigma": (0.05, 0.3), "tau": (1.2, 2.0),
+      "lc_speed_gain": (0.2, 1.5), "lc_keep_right": (1.0, 4.0),
+      "max_speed_lat": (0.4, 0.8), "lc_accel_lat": (0.3, 0.7)})
+  # The held-out road of the test_ood recordings (drivers drawn as above).
+  s.held_out = ml_collections.ConfigDict({
+      "lanes": 4, "lane_width_m": 3.5, "speed_limit_kmh": 110.0,
+      "flow_per_lane": (700.0, 900.0), "duration_s": 100.0})
 
-  if preset == "small":
-    c.sumo.duration_s = 200.0
-  elif preset == "tiny":
-    c.sumo.duration_s = 60.0
-    c.sumo.road_length_m = 900.0
-    c.sumo.section_length_m = 500.0
-    c.sumo.warmup_s = 30.0
+  if arg.small:
+    s.recordings = ml_collections.ConfigDict(
+        {"train": 6, "val": 1, "test": 2, "test_ood": 1})
+    s.duration_s = 120.0
+    s.held_out.duration_s = 40.0
+  if arg.tiny:
+    s.recordings = ml_collections.ConfigDict(
+        {"train": 2, "val": 1, "test": 1, "test_ood": 1})
+    s.duration_s = 60.0
+    s.held_out.duration_s = 60.0
+    s.road_length_m = 900.0
+    s.section_length_m = 500.0
+    s.warmup_s = 30.0
     c.extraction.control_iterations = 4
-  elif preset != "default":
-    raise ValueError(f"configs/dataset.py: unknown preset '{preset}' (default, small, tiny)")
   return c

@@ -39,7 +39,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   arg = common.parse_arg(arg, tiny=False, demo=False, paper=False, q=0, quantizer="")
   config = ml_collections.ConfigDict()
   config.data_dir = "data/sumo"  # dataset folder read by cvmdx_jax.data.dataset.load_split
-  config.splits = ("train", "test")  # splits tokenised after training (train is fitted on)
+  config.splits = ()  # splits tokenised after training (train is fitted on); () = every split
   config.seed = 0  # one seed for init, per-epoch shuffles and per-step keys
   config.encode_batch = 512  # scenarios per chunk when encoding whole splits
 

@@ -5,7 +5,8 @@
   ... --config.source=highd --config.highd_dir=/path/to/highD/data --data_dir=data/highd
   ... --config.source=cvmd_mat --config.mat_dir=/path/to/mat --data_dir=data/mat
 
-Writes <data_dir>/cache/{train,test}.npz + metadata.json and <data_dir>/summary.json; exits
+Writes <data_dir>/cache/{train,val,test[,test_ood]}.npz + metadata.json and
+<data_dir>/summary.json (per-recording statistics: experiments/recording_stats.py); exits
 non-zero with a message naming file, row and column on bad input.
 """
 

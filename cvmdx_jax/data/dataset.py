@@ -1,8 +1,11 @@
 """Build, cache and load the dataset splits for one of three sources.
 
-Sources (`config.source`): 'sumo' (simulate `config.sumo.num_recordings` recordings into
+Sources (`config.source`): 'sumo' (simulate the recordings of `config.sumo.recordings` into
 `data_dir/recordings`, highD format, then read them like highD), 'highd' (`config.highd_dir`),
-'cvmd_mat' (`config.mat_dir/{train,test}`). Splits by recording id from `config.splits`.
+'cvmd_mat' (`config.mat_dir/{train,test}`). Splits (`SPLITS`), disjoint by recording: sumo
+by `sumo_plan.split_ids`, highd by the recording ids of `config.splits` (train, val and test
+required, an empty test_ood skipped), cvmd_mat: test = `test/`, val = a seeded, per-class
+`config.mat_val_fraction` of the `train/` files, train = the rest.
 The cache lives in `data_dir/cache` (see `cache`); it is reused only when it was made with the
 same settings from source files of the same content (names relative to the source directory,
 sizes, sha256), otherwise rebuilt. `dataset_id` hashes exactly these, so it does not depend on
@@ -12,11 +15,15 @@ how `data_dir`, `highd_dir` or `mat_dir` is spelled.
 import json
 from pathlib import Path
 
+import numpy as np
+
 from cvmdx_jax import atomic, locking
-from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo
+from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
 
 SOURCES = ("sumo", "highd", "cvmd_mat")
+SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood
+_REQUIRED = ("train", "val", "test")
 
 
 def _settings(config) -> dict:
@@ -36,7 +43,7 @@ def _sumo_recordings(config, data_dir: Path) -> Path:
   rec_dir = data_dir / "recordings"
   stamp = rec_dir / "sumo_settings.json"
   wanted = json.dumps(_settings(config)["sumo"], sort_keys=True)
-  ids = range(1, config.sumo.num_recordings + 1)
+  ids = [i for split in sumo_plan.split_ids(config.sumo).values() for i in split]
   present = all(p.is_file() for i in ids for p in highd.recording_paths(rec_dir, i).values())
   if not (present and stamp.is_file() and stamp.read_text() == wanted):
     stamp.unlink(missing_ok=True)
@@ -46,15 +53,47 @@ def _sumo_recordings(config, data_dir: Path) -> Path:
 
 
 def _split_ids(config, available, where) -> dict:
-  out = {}
-  for name in ("train", "test"):
-    ids = [i for i in getattr(config.splits, name) if i in available]
-    if not ids:
+  """{split: recording ids present}; DataError for a required split without any or for a
+  recording in two splits."""
+  wanted = (sumo_plan.split_ids(config.sumo) if config.source == "sumo"
+            else {name: list(config.splits.get(name, ())) for name in SPLITS})
+  column = "sumo.recordings" if config.source == "sumo" else "splits"
+  out, seen = {}, {}
+  for name in SPLITS:
+    for i in wanted[name]:
+      if i in seen:
+        raise DataError(where, f"recording {i} is in both {seen[i]} and {name}",
+                        column=f"{column}.{name}")
+      seen[i] = name
+    ids = [i for i in wanted[name] if i in available]
+    if not ids and (wanted[name] or name in _REQUIRED):
       raise DataError(where, f"empty selection: none of the {name} recordings "
-                      f"{list(getattr(config.splits, name))} is there (have {available})",
-                      column=f"splits.{name}")
-    out[name] = ids
+                      f"{wanted[name]} is there (have {available})", column=f"{column}.{name}")
+    if ids:
+      out[name] = ids
   return out
+
+
+def mat_val_index(labels, fraction: float, seed: int) -> np.ndarray:
+  """Sorted indices of the val scenarios carved from cvmd_mat train: per class
+  round(fraction * count) drawn with `np.random.default_rng([seed, class])`."""
+  labels = np.asarray(labels)
+  picks = []
+  for c in np.unique(labels):
+    members = np.flatnonzero(labels == c)
+    count = int(round(fraction * len(members)))
+    picks.append(np.random.default_rng([seed, int(c)]).choice(members, count, replace=False))
+  return np.sort(np.concatenate(picks)) if picks else np.zeros((0,), np.int64)
+
+
+def _read_mat(config, mat_dir: Path) -> dict:
+  train = cvmd_mat.load(mat_dir / "train")
+  val = mat_val_index(train.label, config.mat_val_fraction, config.seed)
+  if len(val) == 0 or len(val) == len(train):
+    raise DataError(mat_dir / "train", f"mat_val_fraction {config.mat_val_fraction} leaves "
+                    f"train or val empty ({len(train)} files)", column="mat_val_fraction")
+  return {"train": train.take(np.setdiff1d(np.arange(len(train)), val)),
+          "val": train.take(val), "test": cvmd_mat.load(mat_dir / "test")}
 
 
 @locking.holds("data_dir")
@@ -78,27 +117,27 @@ def build(config, data_dir) -> dict:
   if config.source == "cvmd_mat":
     mat_dir = root = Path(config.mat_dir)
     files = list(mat_dir.glob("*/class*/*.mat"))
-    readers = {name: (lambda name=name: cvmd_mat.load(mat_dir / name))
-               for name in ("train", "test")}
+    names = _REQUIRED
+    read = lambda: _read_mat(config, mat_dir)
   else:
     rec_dir = root = (_sumo_recordings(config, data_dir) if config.source == "sumo"
                       else Path(config.highd_dir))
     if not rec_dir.is_dir():
       raise DataError(rec_dir, "highD directory not found", column="config.highd_dir")
     ids = _split_ids(config, highd.available_recordings(rec_dir), rec_dir)
-    files = [p for i in ids["train"] + ids["test"]
+    files = [p for split in ids.values() for i in split
              for p in highd.recording_paths(rec_dir, i).values() if p.is_file()]
     ext = extract.as_config(config.extraction)
-    readers = {name: (lambda name=name: highd.load_scenarios(rec_dir, ids[name], ext))
-               for name in ids}
+    names = tuple(ids)
+    read = lambda: {name: highd.load_scenarios(rec_dir, ids[name], ext) for name in names}
   sources = cache.sources(root, files)
   cache_dir = data_dir / "cache"
   if cache.matches(cache.read_metadata(cache_dir), settings, sources):
     try:
-      return {name: cache.read_split(cache_dir, name) for name in readers}
+      return {name: cache.read_split(cache_dir, name) for name in names}
     except DataError:
       pass  # inconsistent cache: rebuild below
-  splits = {name: read() for name, read in readers.items()}
+  splits = read()
   cache.write(cache_dir, splits, settings, sources)
   return splits
 
@@ -115,3 +154,13 @@ def dataset_id(data_dir) -> str:
     raise DataError(Path(data_dir) / "cache" / cache.METADATA,
                     "no dataset cache here, or a malformed or older one (run make_dataset)")
   return cache.dataset_id(metadata)
+
+
+def split_names(data_dir) -> list:
+  """Names of the cached splits in `data_dir`, in `SPLITS` order (others after, sorted)."""
+  metadata = cache.read_metadata(Path(data_dir) / "cache")
+  if metadata is None:
+    raise DataError(Path(data_dir) / "cache" / cache.METADATA,
+                    "no dataset cache here, or a malformed or older one (run make_dataset)")
+  names = metadata.get("splits", {})
+  return [s for s in SPLITS if s in names] + sorted(set(names) - set(SPLITS))

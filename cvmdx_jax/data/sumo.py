@@ -1,13 +1,15 @@
 """SUMO highway simulations exported as highD-format recordings (the embedded default data).
 
-`make_recordings(cfg, out_dir)` runs one headless SUMO simulation per recording id (PyPI
-`eclipse-sumo`, sublane model for continuous lateral motion, 0.04 s steps, seed
-`cfg.seed * 1000 + id`), `cfg.workers` at a time, and writes XX_tracks.csv,
-XX_tracksMeta.csv and XX_recordingMeta.csv for each; `cvmdx_jax.data.highd` reads them
-like real highD recordings.
+`make_recordings(cfg, out_dir)` runs one headless SUMO simulation per recording of
+`sumo_plan.plans(cfg)` (PyPI `eclipse-sumo`, sublane model for continuous lateral motion,
+0.04 s steps, seed `cfg.seed * 1000 + id`, the recording's own road and traffic),
+`cfg.workers` processes at a time (SUMO and the CSV export of each), and writes
+XX_tracks.csv, XX_tracksMeta.csv and XX_recordingMeta.csv for each, plus `plans.json`
+(every recording's plan); `cvmdx_jax.data.highd` reads them like real highD recordings.
 """
 
 import concurrent.futures
+import multiprocessing
 import subprocess
 import tempfile
 from pathlib import Path
@@ -16,24 +18,28 @@ import pandas as pd
 import sumo as sumo_pkg
 
 from cvmdx_jax import constants
-from cvmdx_jax.data import sumo_export, sumo_network
+from cvmdx_jax.data import sumo_export, sumo_network, sumo_plan
+
+PLANS_FILE = "plans.json"
 
 _FCD_COLUMNS = {"timestep_time": "time", "vehicle_id": "id", "vehicle_x": "x",
                 "vehicle_y": "y", "vehicle_angle": "angle", "vehicle_type": "type",
                 "vehicle_speed": "speed", "vehicle_acceleration": "acc"}
 
 
-def simulate(cfg, recording_id: int, net: Path, work_dir: Path) -> pd.DataFrame:
+def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
   """Runs SUMO for one recording; returns its FCD rows (time, id, x, y, angle, type, speed,
   acc) in SUMO coordinates. Raises RuntimeError with SUMO's message when it fails."""
+  recording_id = plan.recording_id
   name = f"rec{recording_id:02d}"
-  routes = sumo_network.write_routes(cfg, work_dir, name)
+  net = sumo_network.write_network(cfg, plan.road, work_dir, name)
+  routes = sumo_network.write_routes(cfg, plan, work_dir, name)
   fcd = work_dir / f"{name}.fcd.csv"
   command = [
       str(Path(sumo_pkg.SUMO_HOME) / "bin" / "sumo"), "-n", str(net), "-r", str(routes),
       "--step-length", f"{constants.DT}", "--lateral-resolution", f"{cfg.lateral_resolution}",
       "--seed", str(cfg.seed * 1000 + recording_id), "--begin", "0",
-      "--end", f"{cfg.warmup_s + cfg.duration_s}", "--fcd-output", str(fcd),
+      "--end", f"{cfg.warmup_s + plan.duration_s}", "--fcd-output", str(fcd),
       "--fcd-output.acceleration", "true", "--output.format", "csv",
       "--fcd-output.attributes", "x,y,angle,type,speed,acceleration",
       "--no-step-log", "true", "--no-warnings", "true",
@@ -47,22 +53,25 @@ def simulate(cfg, recording_id: int, net: Path, work_dir: Path) -> pd.DataFrame:
   return frame[frame["time"] >= cfg.warmup_s].reset_index(drop=True)
 
 
+def _simulate_and_export(cfg, plan, work_dir: Path, out_dir: Path) -> int:
+  return sumo_export.export_recording(simulate(cfg, plan, work_dir), cfg, plan, out_dir)
+
+
 def make_recordings(cfg, out_dir) -> dict:
-  """Simulates and exports recordings 1..cfg.num_recordings into `out_dir`.
+  """Simulates and exports every recording of `sumo_plan.plans(cfg)` into `out_dir`.
 
   Returns:
     {recording id: number of rows in its tracks file}.
   """
   out_dir = Path(out_dir)
-  ids = list(range(1, cfg.num_recordings + 1))
+  plans = sumo_plan.plans(cfg)
   with tempfile.TemporaryDirectory(prefix="sumo_") as tmp:
-    work_dir = Path(tmp)
-    net = sumo_network.write_network(cfg, work_dir)
-
-    def one(recording_id):
-      fcd = simulate(cfg, recording_id, net, work_dir)
-      return sumo_export.export_recording(fcd, cfg, recording_id, out_dir)
-
-    with concurrent.futures.ThreadPoolExecutor(max(1, cfg.workers)) as pool:
-      rows = list(pool.map(one, ids))
-  return dict(zip(ids, rows))
+    # Processes, not threads: the pandas export holds the GIL. Spawned: the parent may
+    # already run JAX's threads, which a fork would copy half-way.
+    with concurrent.futures.ProcessPoolExecutor(
+        max(1, cfg.workers), mp_context=multiprocessing.get_context("spawn")) as pool:
+      futures = [pool.submit(_simulate_and_export, cfg, plan, Path(tmp), out_dir)
+                 for plan in plans.values()]
+      rows = [f.result() for f in futures]
+  sumo_plan.write_plans(plans, out_dir / PLANS_FILE)
+  return dict(zip(plans, rows))

@@ -22,15 +22,15 @@ from cvmdx_jax.data import highd, sumo_network
 _KEY_SHIFT = 26  # bits of the centimetre position in the neighbour search key
 
 
-def _image_markings(cfg) -> tuple[np.ndarray, np.ndarray]:
-  north, south = sumo_network.lane_markings(cfg)
+def _image_markings(cfg, road) -> tuple[np.ndarray, np.ndarray]:
+  north, south = sumo_network.lane_markings(road, cfg.median_m)
   top = north[-1] + cfg.image_top_m
   return np.sort(top - north), np.sort(top - south)
 
 
-def _tracks_from_fcd(fcd: pd.DataFrame, cfg) -> pd.DataFrame:
+def _tracks_from_fcd(fcd: pd.DataFrame, cfg, plan) -> pd.DataFrame:
   """Per-row kinematics in image coordinates, contiguous tracks, ids 1..N, frames from 1."""
-  dims = sumo_network.vehicle_dims()
+  dims = sumo_network.vehicle_dims(plan)
   kind = fcd["type"].map({k: v[0] for k, v in dims.items()}).to_numpy()
   length = fcd["type"].map({k: v[1] for k, v in dims.items()}).to_numpy(np.float64)
   width = fcd["type"].map({k: v[2] for k, v in dims.items()}).to_numpy(np.float64)
@@ -38,7 +38,7 @@ def _tracks_from_fcd(fcd: pd.DataFrame, cfg) -> pd.DataFrame:
   hx, hy = np.sin(theta), np.cos(theta)
   cx = fcd["x"].to_numpy(np.float64) - 0.5 * length * hx
   cy = fcd["y"].to_numpy(np.float64) - 0.5 * length * hy
-  north, _ = sumo_network.lane_markings(cfg)
+  north, _ = sumo_network.lane_markings(plan.road, cfg.median_m)
   top = north[-1] + cfg.image_top_m
   frame = np.round(fcd["time"].to_numpy() / constants.DT).astype(np.int64)
   frame -= int(round(cfg.warmup_s / constants.DT)) - 1
@@ -117,17 +117,21 @@ def _write_csv(frame: pd.DataFrame, path: Path) -> None:
     frame.to_csv(f, index=False, float_format="%.2f")
 
 
-def export_recording(fcd: pd.DataFrame, cfg, recording_id: int, out_dir: Path) -> int:
+def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
   """Writes XX_tracks.csv, XX_tracksMeta.csv, XX_recordingMeta.csv; returns the row count.
 
   Args:
     fcd: SUMO FCD rows with columns time, id, x, y, angle, type, speed, acc.
-    cfg: the `sumo` config section.
-    recording_id: XX.
+    cfg: the `sumo` config section (section, image and time settings).
+    plan: the recording's `sumo_plan.RecordingPlan` (XX = plan.recording_id, its road and
+      vehicle types).
     out_dir: destination directory.
   """
-  t = _tracks_from_fcd(fcd, cfg)
-  upper, lower = _image_markings(cfg)
+  if 2 * plan.road.lanes + 3 >= 16:
+    raise ValueError(f"sumo export: {plan.road.lanes} lanes per direction, at most 6")
+  recording_id = plan.recording_id
+  t = _tracks_from_fcd(fcd, cfg, plan)
+  upper, lower = _image_markings(cfg, plan.road)
   markings = np.sort(np.r_[upper, lower])
   t["x"] = (t["xc"] - 0.5 * t["width"]).round(2)
   t["y"] = (t["yc"] - 0.5 * t["height"]).round(2)
@@ -165,11 +169,11 @@ def export_recording(fcd: pd.DataFrame, cfg, recording_id: int, out_dir: Path) -
       "minTTC": positive("ttc"),
       "numLaneChanges": g["laneId"].agg(lambda x: int(np.count_nonzero(np.diff(x.to_numpy())))),
   }).round(2)
-  num_frames = int(round(cfg.duration_s * constants.FRAME_RATE_HZ))
+  num_frames = int(round(plan.duration_s * constants.FRAME_RATE_HZ))
   fmt = lambda values: ";".join(f"{v:.2f}" for v in values)
   rec_meta = pd.DataFrame([{
       "id": recording_id, "frameRate": constants.FRAME_RATE_HZ, "locationId": 0,
-      "speedLimit": round(cfg.speed_limit_ms, 2), "month": "01.2000", "weekDay": "Mon",
+      "speedLimit": round(plan.road.speed_limit_ms, 2), "month": "01.2000", "weekDay": "Mon",
       "startTime": "00:00", "duration": num_frames * constants.DT,
       "totalDrivenDistance": meta["traveledDistance"].sum(),
       "totalDrivenTime": meta["numFrames"].sum() * constants.DT,

@@ -108,7 +108,8 @@ def _content_id(splits: dict[str, Scenarios]) -> str:
 
 
 def _load_splits(config) -> tuple[dict[str, Scenarios], str]:
-  splits = {s: dataset_lib.load_split(config.data_dir, s) for s in config.splits}
+  names = config.splits or dataset_lib.split_names(config.data_dir)
+  splits = {s: dataset_lib.load_split(config.data_dir, s) for s in names}
   return splits, dataset_lib.dataset_id(config.data_dir)
 
 
@@ -121,8 +122,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
     config: see configs/tokenizer.py.
     workdir: run directory (checkpoints, metrics.jsonl, tokenizer.json, tokens/).
     splits: scenarios per split name (must hold "train"); default: read
-      `config.splits` from `config.data_dir` with `cvmdx_jax.data.dataset`. Given
-      splits are identified by a hash of their contents.
+      `config.splits` (empty: every split) from `config.data_dir` with
+      `cvmdx_jax.data.dataset`. Given splits are identified by a hash of their contents.
 
   Returns:
     The final train state.

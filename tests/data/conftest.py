@@ -90,8 +90,8 @@ def write_recording(directory: Path, recording_id: int = 1, vehicles=(1, 2, 3, 4
 
 @pytest.fixture
 def highd_dir(tmp_path) -> Path:
-  """A directory holding recordings 01 and 02 (identical content)."""
-  for recording_id in (1, 2):
+  """A directory holding recordings 01, 02 and 03 (identical content)."""
+  for recording_id in (1, 2, 3):
     write_recording(tmp_path, recording_id)
   return tmp_path
 
@@ -99,14 +99,14 @@ def highd_dir(tmp_path) -> Path:
 @pytest.fixture
 def highd_config(highd_dir):
   """A factory of fresh `configs/dataset.py:tiny` configs reading `highd_dir`
-  (recording 1 train, 2 test, two lane-change offsets)."""
+  (recording 1 train, 3 val, 2 test, two lane-change offsets)."""
   from configs import dataset as dataset_config
 
   def make():
     config = dataset_config.get_config("tiny")
     config.source = "highd"
     config.highd_dir = str(highd_dir)
-    config.splits.train, config.splits.test = (1,), (2,)
+    config.splits.train, config.splits.val, config.splits.test = (1,), (3,), (2,)
     config.extraction.lc_offsets_s = (0.5, 1.0)
     return config
   return make

@@ -181,7 +181,7 @@ def test_make_dataset_exits_nonzero_without_cache(highd_dir, tmp_path):
   result = subprocess.run(
       [sys.executable, "experiments/make_dataset.py", "--config=configs/dataset.py:tiny",
        f"--data_dir={out}", "--config.source=highd", f"--config.highd_dir={highd_dir}",
-       "--config.splits.train=(1,)", "--config.splits.test=(2,)"],
+       "--config.splits.train=(1,)", "--config.splits.val=(3,)", "--config.splits.test=(2,)"],
       cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": str(ROOT),
                                                      "JAX_PLATFORMS": "cpu"})
   assert result.returncode != 0

@@ -13,7 +13,7 @@ from cvmdx_jax.data.errors import DataError
 def test_build_reuse_and_rebuild(highd_config, highd_dir, tmp_path):
   out = tmp_path / "out"
   splits = dataset.build(highd_config(), out)
-  assert set(splits) == {"train", "test"}
+  assert set(splits) == {"train", "val", "test"}  # test_ood = (): not built
   assert np.bincount(splits["train"].label).tolist() == [2, 2, 2]
   assert set(splits["test"].recording_id.tolist()) == {2}
   ident = dataset.dataset_id(out)
@@ -44,8 +44,9 @@ def test_load_split_errors(highd_config, highd_dir, tmp_path):
   with pytest.raises(DataError, match="no dataset cache"):
     dataset.load_split(out, "train")
   dataset.build(highd_config(), out)
-  with pytest.raises(DataError, match=r"unknown split 'val', available: \['test', 'train'\]"):
-    dataset.load_split(out, "val")
+  with pytest.raises(DataError,
+                     match=r"unknown split 'test_ood', available: \['test', 'train', 'val'\]"):
+    dataset.load_split(out, "test_ood")
   path = out / "cache" / "test.npz"
   path.write_bytes(path.read_bytes()[:-10])  # interrupted write
   with pytest.raises(DataError, match="does not match metadata"):
