@@ -56,6 +56,30 @@ def hit(pred, gt):
   return (jnp.abs(pred[..., -1, 1] - gt[..., -1, 1]) < HIT_LATERAL_M).astype(jnp.float32)
 
 
+def final_lon_lat(pred, gt):
+  """Final longitudinal and lateral errors |dx(5 s)|, |dy(5 s)|: (..., T, 2) -> two (...,)."""
+  err = jnp.abs(pred[..., -1, :] - gt[..., -1, :])
+  return err[..., 0], err[..., 1]
+
+
+def brier_min_fde(hyps, probs, gt, valid):
+  """Brier-minFDE (Argoverse 2): minFDE_K + (1 - p)^2 with p the probability of the
+  hypothesis that attains minFDE_K. hyps (..., K, T, 2), probs and valid (..., K),
+  gt (..., T, 2) -> (...,)."""
+  err = _per_hypothesis(fde, hyps, gt, valid)
+  best = jnp.argmin(err, axis=-1)[..., None]
+  p = jnp.take_along_axis(probs, best, axis=-1)[..., 0]
+  return jnp.take_along_axis(err, best, axis=-1)[..., 0] + (1.0 - p) ** 2
+
+
+def target_lane_hit(hyps, probs, gt, min_prob: float = 0.2):
+  """1.0 where a hypothesis with p >= min_prob ends in the lane the ego ends in: its
+  final lateral position within half a lane (1.75 m) of the ground truth's.
+  hyps (..., K, T, 2), probs (..., K), gt (..., T, 2) -> (...,)."""
+  ends = hit(hyps, gt[..., None, :, :]) * (probs >= min_prob)
+  return jnp.max(ends, axis=-1)
+
+
 def multimodal_metrics(mean, hyp_means, hyp_probs, gt):
   """All per-scenario metrics of one prediction set.
 

@@ -42,3 +42,25 @@ def test_most_likely_and_rates():
   np.testing.assert_allclose(out["miss_rate"], [0.0, 0.0])
   far = metrics.multimodal_metrics(mean=gt + 3, hyp_means=hyps + 3, hyp_probs=probs, gt=gt)
   np.testing.assert_allclose(far["miss_rate"], [1.0, 1.0])
+
+
+def test_final_lon_lat_by_hand():
+  gt = np.zeros((125, 2), np.float32)
+  lon, lat = metrics.final_lon_lat(_line(-3, 4), gt)
+  assert np.isclose(lon, 3.0) and np.isclose(lat, 4.0)
+
+
+def test_brier_min_fde_uses_the_probability_of_the_closest_hypothesis():
+  gt = np.zeros((125, 2), np.float32)
+  hyps = np.stack([_line(3, 4), _line(0, 1), _line(0, 0)])  # slot 2 unused
+  probs = np.array([0.8, 0.2, 0.0], np.float32)
+  value = metrics.brier_min_fde(hyps, probs, gt, probs > 0)
+  assert np.isclose(value, 1.0 + 0.8**2)  # minFDE 1 from slot 1 with p = 0.2
+
+
+def test_target_lane_hit_needs_enough_probability():
+  gt = np.tile(_line(50, 3.5)[None], (2, 1, 1))
+  hyps = np.stack([np.stack([_line(50, 0.0), _line(48, 3.0)]),
+                   np.stack([_line(50, 0.0), _line(48, 3.0)])])
+  probs = np.array([[0.6, 0.4], [0.9, 0.1]], np.float32)
+  np.testing.assert_allclose(metrics.target_lane_hit(hyps, probs, gt), [1.0, 0.0])

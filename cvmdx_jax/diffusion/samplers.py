@@ -17,7 +17,9 @@ from cvmdx_jax.diffusion.guidance import official_step_weights
 from cvmdx_jax.diffusion.schedule import Schedule, ddim_timesteps, official_ddim_timesteps
 
 
-def _predict(v_fn, x_t, t, abar_t, clip_x0):
+def predict_x0_eps(v_fn, x_t, t, abar_t, clip_x0):
+  """x0 and eps from v_fn at the scalar timestep t; x0 optionally clipped (eps then
+  recomputed from the clipped x0)."""
   t_vec = jnp.full((x_t.shape[0],), t, jnp.int32)
   v = v_fn(x_t, t_vec)
   x0 = param.x0_from_v(x_t, v, abar_t)
@@ -64,7 +66,7 @@ def ddim_sample(v_fn, key, shape, schedule: Schedule, steps: int = 10, eta: floa
   def body(x_t, inputs):
     i, t, a_prev = inputs
     a_t = abar[t]
-    x0, eps = _predict(v_fn, x_t, t, a_t, clip_x0)
+    x0, eps = predict_x0_eps(v_fn, x_t, t, a_t, clip_x0)
     sigma = eta * jnp.sqrt((1.0 - a_prev) / (1.0 - a_t) * (1.0 - a_t / a_prev))
     noise = jax.random.normal(jax.random.fold_in(key, i), shape)
     x_prev = (jnp.sqrt(a_prev) * x0 + jnp.sqrt(jnp.maximum(1.0 - a_prev - sigma**2, 0.0)) * eps
@@ -89,7 +91,7 @@ def ddpm_sample(v_fn, key, shape, schedule: Schedule, clip_x0: float | None = No
 
   def body(x_t, t):
     a_t, a_prev, b_t = abar[t], abar_prev[t], betas[t]
-    x0, _ = _predict(v_fn, x_t, t, a_t, clip_x0)
+    x0, _ = predict_x0_eps(v_fn, x_t, t, a_t, clip_x0)
     c1 = b_t * jnp.sqrt(a_prev) / (1.0 - a_t)
     c2 = (1.0 - a_prev) * jnp.sqrt(1.0 - b_t) / (1.0 - a_t)
     var = b_t * (1.0 - a_prev) / (1.0 - a_t)
