@@ -44,6 +44,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # (4, 0.7). Highway yaw rates stay below 0.075 rad/s in 99.9 % of steps, so 0.7 leaves
   # 90 % of the range unused: a small model's error then costs metres laterally.
   config.diffusion.control_scale = (4.0, 0.7)
+  # what the denoiser sees besides x_t and t (cvmdx_jax/ego_motion.py): "token" (the paper),
+  # "ego_film" (+ ego-motion features as a FiLM embedding), "ego_residual" (target =
+  # controls minus the ego's current [a_x, yaw rate] extrapolated), "ego_film_residual".
+  # Guidance drops only the token: both CFG branches see the ego features.
+  config.diffusion.conditioning = "token"
+  # (a_x, yaw rate) decay time constants [s] of the extrapolated current controls of the
+  # residual target; chosen on train (BUILD_NOTES.md, "Ego-motion conditioning")
+  config.diffusion.residual_decay_s = (1.0, 0.1)
 
   config.train = ml_collections.ConfigDict()
   config.train.batch_size = 256  # global batch (paper)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import constants, sharding
+from cvmdx_jax import constants, ego_motion, sharding
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
@@ -60,7 +60,8 @@ def _predict(bundle, graphdef_params, xi, mask, v0, psi0, keys, schedule, *, nul
              config):
   graphdef, params = graphdef_params
   q, _, delta = tokenizer_train.tokenize(bundle, xi, mask)
-  pred = predict_batch(graphdef, params, q, delta, v0, psi0, keys, schedule=schedule,
+  ego = None if config.conditioning == "token" else ego_motion.ego_features(xi, mask)
+  pred = predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego, schedule=schedule,
                        null_token=null_token, config=config)
   return pred, q, delta
 
@@ -113,7 +114,9 @@ class Predictor:
           f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
           f"tokeniser fingerprint keys: {differing}")
     trained = diffusion_train.sampling_config(denoiser.config)
-    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale)
+    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale,
+                                   conditioning=trained.conditioning,
+                                   residual_decay_s=trained.residual_decay_s)
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size)
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:

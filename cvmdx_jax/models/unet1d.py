@@ -4,10 +4,13 @@ Reference defaults (cVMDx): 128 base channels, multipliers (1, 2, 3, 4), one
 residual block per level, 4-head self-attention at the two coarsest levels,
 FiLM conditioning from timestep embedding + learned token embedding with one
 extra null token (index `num_tokens`) for classifier-free guidance. The sequence
-is zero-padded from 125 to 128 and cropped back.
+is zero-padded from 125 to 128 and cropped back. Beyond the paper, an optional
+conditioning vector c (B, cond_dim) (ego-motion features, `cvmdx_jax.ego_motion`)
+adds its MLP embedding to the same FiLM embedding; the null token drops only q.
 
 Functional use: `graphdef, params = init_unet(config, key)`, then
-`apply_unet(graphdef, params, x_t, t, q)` inside `jax.jit`.
+`apply_unet(graphdef, params, x_t, t, q)` (or `..., cond=c` when cond_dim > 0) inside
+`jax.jit`.
 """
 
 import dataclasses
@@ -37,6 +40,7 @@ class UNetConfig:
     channels: input/output channels (2: a_x, yaw rate).
     length: sequence length (125).
     padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)).
+    cond_dim: width of the optional conditioning vector (0 = token only, the paper).
   """
 
   num_tokens: int = 60
@@ -51,6 +55,7 @@ class UNetConfig:
   channels: int = 2
   length: int = constants.T_PRED
   padded_length: int = 128
+  cond_dim: int = 0
 
   def __post_init__(self):
     factor = 2 ** (len(self.channel_mult) - 1)
@@ -64,7 +69,7 @@ class UNetConfig:
 
 
 class UNet1D(nnx.Module):
-  """`model(x_t (B, L, C), t (B,) int, q (B,) int) -> v (B, L, C)`."""
+  """`model(x_t (B, L, C), t (B,) int, q (B,) int[, cond (B, cond_dim)]) -> v (B, L, C)`."""
 
   def __init__(self, config: UNetConfig, *, rngs: nnx.Rngs):
     self.config = config
@@ -79,6 +84,9 @@ class UNet1D(nnx.Module):
     self.time_mlp1 = nnx.Linear(ch, emb_dim, rngs=rngs)
     self.time_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
     self.token_embed = nnx.Embed(config.num_tokens + 1, emb_dim, rngs=rngs)
+    if config.cond_dim:
+      self.cond_mlp1 = nnx.Linear(config.cond_dim, emb_dim, rngs=rngs)
+      self.cond_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
     self.conv_in = nnx.Conv(config.channels, ch, kernel_size=(3,), rngs=rngs)
 
     skip_channels, down_blocks, down_samples, cur = [ch], [], [], ch
@@ -109,13 +117,18 @@ class UNet1D(nnx.Module):
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
 
-  def __call__(self, x_t, t, q, dropout_key=None):
+  def __call__(self, x_t, t, q, dropout_key=None, cond=None):
     cfg = self.config
+    if (cond is None) != (cfg.cond_dim == 0):
+      raise ValueError(f"UNet1D: cond_dim={cfg.cond_dim} but cond is "
+                       f"{None if cond is None else jnp.shape(cond)}")
     keys = iter(jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
                 if dropout_key is not None else [])
     key = lambda: next(keys, None)
     emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
     emb = emb + self.token_embed(q)
+    if cfg.cond_dim:
+      emb = emb + self.cond_mlp2(jax.nn.silu(self.cond_mlp1(cond)))
     h = self.conv_in(jnp.pad(x_t, ((0, 0), (0, cfg.padded_length - x_t.shape[1]), (0, 0))))
     skips, blocks = [h], iter(self.down_blocks)
     for level in range(len(cfg.channel_mult)):
@@ -147,9 +160,9 @@ def make_graphdef(config: UNetConfig):
   return nnx.split(nnx.eval_shape(lambda: UNet1D(config, rngs=nnx.Rngs(0))))[0]
 
 
-def apply_unet(graphdef, params, x_t, t, q, dropout_key=None):
-  """Functional forward pass: v (B, L, C)."""
-  return nnx.merge(graphdef, params)(x_t, t, q, dropout_key)
+def apply_unet(graphdef, params, x_t, t, q, dropout_key=None, cond=None):
+  """Functional forward pass: v (B, L, C); cond (B, cond_dim) iff cond_dim > 0."""
+  return nnx.merge(graphdef, params)(x_t, t, q, dropout_key, cond)
 
 
 def count_params(params) -> int:

@@ -1,7 +1,9 @@
 """Training of the motion diffusion model v_theta(x_t, t, q) on the shared loop.
 
-Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2);
-condition: the tokeniser's token q of each training scenario. Loss: the v-loss with
+Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2)
+(with an `ego_*residual` conditioning: of controls minus the ego's extrapolated current
+controls); condition: the tokeniser's token q of each training scenario (and, with an
+`ego_film*` conditioning, its ego-motion features, `cvmdx_jax.ego_motion`). Loss: the v-loss with
 conditioning dropout to the null token Q. Optimiser: AdamW with linear warm-up and
 cosine decay to `min_lr`, global-norm clipping; an EMA of the weights (with the usual
 warm-up of the decay, min(decay, (1 + step) / (10 + step))) is what inference uses.
@@ -18,7 +20,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import atomic, normalization, tokens as tokens_lib
+from cvmdx_jax import atomic, ego_motion, normalization, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import GuidanceConfig, cosine_schedule, v_loss
 from cvmdx_jax.inference import SamplingConfig
@@ -27,12 +29,19 @@ from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.train import loop
 
 
+def conditioning(config: ml_collections.ConfigDict) -> str:
+  """The run's `diffusion.conditioning` ("token" for runs made before it existed)."""
+  return ego_motion.check_conditioning(config.diffusion.get("conditioning", "token"))
+
+
 def unet_config(config: ml_collections.ConfigDict, num_tokens: int) -> unet1d.UNetConfig:
   m = config.model
+  cond_dim = ego_motion.NUM_FEATURES if ego_motion.uses_film(conditioning(config)) else 0
   return unet1d.UNetConfig(num_tokens=num_tokens, base_channels=m.base_channels,
                            channel_mult=tuple(m.channel_mult), num_res_blocks=m.num_res_blocks,
                            emb_mult=m.emb_mult, attention_levels=tuple(m.attention_levels),
-                           num_heads=m.num_heads, groups=m.groups, dropout=m.dropout)
+                           num_heads=m.num_heads, groups=m.groups, dropout=m.dropout,
+                           cond_dim=cond_dim)
 
 
 def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
@@ -41,6 +50,9 @@ def sampling_config(config: ml_collections.ConfigDict) -> SamplingConfig:
       num_samples=s.num_samples, sampler=s.sampler, steps=s.steps, eta=s.eta,
       clip_x0=s.clip_x0 if s.clip_x0 > 0 else None,
       control_scale=tuple(config.diffusion.control_scale),
+      conditioning=conditioning(config),
+      residual_decay_s=tuple(config.diffusion.get("residual_decay_s",
+                                                 SamplingConfig.residual_decay_s)),
       guidance=GuidanceConfig(**s.guidance.to_dict()),
       hypotheses=HypothesisConfig(**s.hypotheses.to_dict()))
 
@@ -76,7 +88,8 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
     k_loss, k_drop = jax.random.split(key)
 
     def loss_fn(params):
-      model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop)
+      ego = batch["ego"] if cfg.cond_dim else None
+      model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop, ego)
       return v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
                     cond_drop_prob=cond_drop_prob, weight=batch["weight"])
 
@@ -95,22 +108,32 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
 def fingerprint(config, cfg: unet1d.UNetConfig, dataset_id: str, tokens_meta: dict) -> dict:
   """What a checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
   checkpoint = tokens_meta.get("checkpoint", {})
-  return {"model": dataclasses.asdict(cfg), "num_diffusion_steps": config.diffusion.num_steps,
-          "control_scale": list(config.diffusion.control_scale),
-          "dataset_id": dataset_id,
-          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
-                        "step": checkpoint.get("step")}}
+  out = {"model": dataclasses.asdict(cfg), "num_diffusion_steps": config.diffusion.num_steps,
+         "control_scale": list(config.diffusion.control_scale),
+         "dataset_id": dataset_id,
+         "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
+                       "step": checkpoint.get("step")}}
+  if conditioning(config) != "token":  # token-only fingerprints stay as they were
+    out["conditioning"] = {"name": conditioning(config), "features": ego_motion.NUM_FEATURES,
+                           "residual_decay_s": list(config.diffusion.residual_decay_s)}
+  return out
 
 
 def training_data(config) -> tuple[dict, int, str, dict]:
-  """(arrays {x0, q}, Q, dataset id, tokens metadata) of the training split."""
+  """(arrays {x0, q[, ego]}, Q, dataset id, tokens metadata) of the training split."""
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
                                       dataset_id=dataset_id, num_scenarios=len(scenarios))
   scale = tuple(config.diffusion.control_scale)
-  x0 = np.asarray(normalization.normalize_controls(scenarios.controls, scale), np.float32)
-  return {"x0": x0, "q": toks.q.astype(np.int32)}, int(meta["codebook_size"]), dataset_id, meta
+  data, controls = {"q": toks.q.astype(np.int32)}, scenarios.controls
+  if conditioning(config) != "token":
+    data["ego"] = np.asarray(ego_motion.ego_features(scenarios.xi, scenarios.mask))
+    if ego_motion.uses_residual(conditioning(config)):
+      controls = controls - ego_motion.residual_controls(
+          data["ego"], tuple(config.diffusion.residual_decay_s))
+  data["x0"] = np.asarray(normalization.normalize_controls(controls, scale), np.float32)
+  return data, int(meta["codebook_size"]), dataset_id, meta
 
 
 def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
