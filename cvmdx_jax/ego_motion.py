@@ -8,12 +8,12 @@ t0, 25 Hz; ego = vehicle 0). Each feature is (value - centre) / scale, clipped t
 |---|---|---|---|---|
 | 0 | speed at t0, \\|v\\| | m/s | 30 | 10 |
 | 1 | longitudinal acceleration: least-squares slope of \\|v\\|, last 1 s | m/s^2 | 0 | 1 |
-| 2 | mean acceleration over the window: \\|v\\| change over 2.96 s / 2.96 s | m/s^2 | 0 | 1 |
+| 2 | mean acceleration: \\|v\\| change since the first observed step / its age | m/s^2 | 0 | 1 |
 | 3 | yaw rate: least-squares slope of heading atan2(v_y, v_x), last 1 s | rad/s | 0 | 0.02 |
 | 4 | heading at t0 relative to the road axis | rad | 0 | 0.03 |
 | 5 | lateral velocity v_y at t0 | m/s | 0 | 1 |
 | 6 | lateral displacement over the last 1 s, y(t0) - y(t0 - 1 s) | m | 0 | 1 |
-| 7 | lateral displacement over the window, y(t0) - y(t0 - 2.96 s) | m | 0 | 2 |
+| 7 | lateral displacement since the first observed step (t0 - 2.96 s) | m | 0 | 2 |
 | 8 | lateral offset from the lane centre, proxy (below; 0 without reference) | m | 0 | 1 |
 | 9 | 1 where feature 8 has a same-lane neighbour, else 0 | - | 0 | 1 |
 | 10 | 1 where a preceding vehicle is there at t0, else 0 | - | 0 | 1 |

@@ -85,7 +85,7 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
   branches get them: the unconditional branch drops only the token (the paper's CFG).
   """
   n = config.num_samples
-  cond = lambda x_t: None if ego is None else jnp.broadcast_to(ego, (x_t.shape[0], ego.shape[-1]))
+  cond = lambda x_t: None if ego is None else jnp.broadcast_to(ego, (len(x_t), ego.shape[-1]))
   model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c, cond=cond(x_t))
   v_fn = guided_v_fn(model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule,
                      config.guidance)

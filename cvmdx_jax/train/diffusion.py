@@ -3,10 +3,11 @@
 Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2)
 (with an `ego_*residual` conditioning: of controls minus the ego's extrapolated current
 controls); condition: the tokeniser's token q of each training scenario (and, with an
-`ego_film*` conditioning, its ego-motion features, `cvmdx_jax.ego_motion`). Loss: the v-loss with
-conditioning dropout to the null token Q. Optimiser: AdamW with linear warm-up and
-cosine decay to `min_lr`, global-norm clipping; an EMA of the weights (with the usual
-warm-up of the decay, min(decay, (1 + step) / (10 + step))) is what inference uses.
+`ego_film*` conditioning, its ego-motion features, `cvmdx_jax.ego_motion`). Loss: the
+v-loss with conditioning dropout (of the token only) to the null token Q. Optimiser:
+AdamW with linear warm-up and cosine decay to `min_lr`, global-norm clipping; an EMA of
+the weights (with the usual warm-up of the decay, min(decay, (1 + step) / (10 + step))) is
+what inference uses.
 """
 
 import dataclasses
