@@ -1,6 +1,6 @@
-"""The inference path: (denoiser params, tokens q, delta, v0, psi0, keys) ->
-N sampled control sequences, their trajectories, the mean trajectory and the
-hypotheses. Plain jittable code: the caller jits at its boundary (`predict.Predictor`;
+"""The inference path: (denoiser params, tokens q, delta, v0, psi0, keys[, ego
+features]) -> N sampled control sequences, their trajectories, the mean trajectory and
+the hypotheses. Plain jittable code: the caller jits at its boundary (`predict.Predictor`;
 `jax.jit(predict_batch, static_argnames=STATIC_ARGNAMES)` for a batch alone).
 
 Each scenario draws its noise from its own key, so a scenario's samples do not
@@ -12,7 +12,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from cvmdx_jax import constants, normalization, vmm
+from cvmdx_jax import constants, ego_motion, normalization, vmm
 from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
                                  ddpm_sample, guided_v_fn, official_ddim_sample)
 from cvmdx_jax.models.unet1d import apply_unet
@@ -39,6 +39,9 @@ class SamplingConfig:
       official sampler clips to [-1, 1]); None = no clipping.
     control_scale: (m/s^2, rad/s) that one normalised unit of [a_x, yaw_rate] stands
       for; a property of the trained denoiser (`Predictor` sets it from the run).
+    conditioning: `diffusion.conditioning` of the trained denoiser (`ego_motion`); set
+      from the run by `Predictor`, like control_scale.
+    residual_decay_s: (a_x, yaw rate) decay time constants of its residual base, s.
     guidance: `GuidanceConfig`.
     hypotheses: `HypothesisConfig`.
   """
@@ -50,6 +53,8 @@ class SamplingConfig:
   eta: float = 0.0
   clip_x0: float | None = 1.0
   control_scale: tuple[float, float] = normalization.PAPER_SCALE
+  conditioning: str = "token"
+  residual_decay_s: tuple[float, float] = (1.0, 0.1)
   guidance: GuidanceConfig = GuidanceConfig()
   hypotheses: HypothesisConfig = HypothesisConfig()
 
@@ -61,6 +66,7 @@ class SamplingConfig:
                        f"'ddim'), got {self.mode!r} with {self.sampler!r}")
     if self.num_samples < 1:
       raise ValueError(f"sampling.num_samples must be >= 1, got {self.num_samples}")
+    ego_motion.check_conditioning(self.conditioning)
 
 
 @jax.tree_util.register_dataclass
@@ -82,10 +88,15 @@ class Prediction:
 
 
 def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null_token: int,
-                    config: SamplingConfig):
-  """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2)."""
+                    config: SamplingConfig, ego=None):
+  """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2).
+
+  ego: (F,) ego-motion features for a U-Net with cond_dim = F, else None. Both guidance
+  branches get them: the unconditional branch drops only the token (the paper's CFG).
+  """
   n = config.num_samples
-  model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c)
+  cond = lambda x_t: None if ego is None else jnp.broadcast_to(ego, (len(x_t), ego.shape[-1]))
+  model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c, cond=cond(x_t))
   shape = (n, constants.T_PRED, 2)
   if config.mode == "official":
     return official_ddim_sample(
@@ -100,7 +111,7 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
                      clip_x0=config.clip_x0)
 
 
-def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Schedule,
+def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, schedule: Schedule,
                   null_token: int, config: SamplingConfig = SamplingConfig()) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.
 
@@ -112,6 +123,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Sched
     v0: (B,) ego speed at t0, m/s.
     psi0: (B,) ego heading at t0, rad.
     keys: (B,) PRNG keys, one per scenario.
+    ego: (B, F) `ego_motion.ego_features`; required unless config.conditioning is "token".
     schedule: the diffusion `Schedule` the model was trained with.
     null_token: the unconditional token (Q).
     config: `SamplingConfig`.
@@ -119,10 +131,15 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, *, schedule: Sched
   Returns:
     `Prediction`.
   """
-  x0 = jax.vmap(lambda qi, di, ki: sample_controls(
+  if config.conditioning != "token" and ego is None:
+    raise ValueError(f"predict_batch: conditioning {config.conditioning!r} needs ego features")
+  film = ego if ego_motion.uses_film(config.conditioning) else None
+  x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
       graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
-      config=config))(q, delta, keys)
+      config=config, ego=ei))(q, delta, keys, film)
   controls = normalization.denormalize_controls(x0, config.control_scale)
+  if ego_motion.uses_residual(config.conditioning):
+    controls = controls + ego_motion.residual_controls(ego, config.residual_decay_s)[:, None]
   trajectories = vmm.rollout(controls, v0[:, None], psi0[:, None])
   return Prediction(controls=controls, trajectories=trajectories,
                     mean=jnp.mean(trajectories, axis=1),

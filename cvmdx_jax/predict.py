@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import checkpointing, runs, sharding
+from cvmdx_jax import checkpointing, ego_motion, runs, sharding
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
@@ -60,7 +60,8 @@ class PredictorOutput:
 def _predict(tokenizer: runs.TokenizerBundle, denoiser: runs.Denoiser, xi, mask, v0, psi0,
              keys, schedule, *, config: SamplingConfig):
   q, _, delta = tokenizer.tokenize(xi, mask)
-  pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys,
+  ego = None if config.conditioning == "token" else ego_motion.ego_features(xi, mask)
+  pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys, ego,
                        schedule=schedule, null_token=denoiser.null_token, config=config)
   return pred, q, delta
 
@@ -106,7 +107,9 @@ class Predictor:
           f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
           f"tokeniser fingerprint keys: {differing}")
     trained = runs.sampling_config(denoiser.config)
-    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale)
+    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale,
+                                   conditioning=trained.conditioning,
+                                   residual_decay_s=trained.residual_decay_s)
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size)
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:

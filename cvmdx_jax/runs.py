@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from cvmdx_jax import atomic, checkpointing, sharding, tokens
+from cvmdx_jax import atomic, checkpointing, ego_motion, sharding, tokens
 from cvmdx_jax.checkpointing import CheckpointMismatchError
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.inference import SamplingConfig
@@ -54,22 +54,43 @@ def tokenizer_fingerprint(model_cfg: tokenizer_lib.TokenizerConfig, dataset_id: 
                                "scale": scenario_norm.XI_SCALE.tolist()}}
 
 
+def conditioning(config) -> str:
+  """The run's `diffusion.conditioning` ("token" for runs made before it existed)."""
+  return ego_motion.check_conditioning(config.diffusion.get("conditioning", "token"))
+
+
+def unet_config(config, num_tokens: int) -> unet1d.UNetConfig:
+  """The `UNetConfig` of a diffusion config (`config.model`, conditioning width)."""
+  cond_dim = ego_motion.NUM_FEATURES if ego_motion.uses_film(conditioning(config)) else 0
+  return to_dataclass(unet1d.UNetConfig, config.model, num_tokens=num_tokens,
+                      cond_dim=cond_dim)
+
+
 def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetConfig,
                           dataset_id: str, tokens_meta: dict) -> dict:
-  """What a denoiser checkpoint belongs to: model shape, dataset and tokeniser checkpoint."""
+  """What a denoiser checkpoint belongs to: model shape, dataset, tokeniser checkpoint
+  and (beyond the paper) the ego-motion conditioning."""
   checkpoint = tokens_meta.get("checkpoint", {})
-  return {"model": dataclasses.asdict(unet), "num_diffusion_steps": config.diffusion.num_steps,
-          "control_scale": list(config.diffusion.control_scale),
-          "dataset_id": dataset_id,
-          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
-                        "step": checkpoint.get("step")}}
+  out = {"model": dataclasses.asdict(unet), "num_diffusion_steps": config.diffusion.num_steps,
+         "control_scale": list(config.diffusion.control_scale),
+         "dataset_id": dataset_id,
+         "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
+                       "step": checkpoint.get("step")}}
+  if conditioning(config) != "token":  # token-only fingerprints stay as they were
+    out["conditioning"] = {"name": conditioning(config), "features": ego_motion.NUM_FEATURES,
+                           "residual_decay_s": list(config.diffusion.residual_decay_s)}
+  return out
 
 
 def sampling_config(config) -> SamplingConfig:
-  """The `SamplingConfig` of a diffusion run's config (`config.sampling`, control scale)."""
+  """The `SamplingConfig` of a diffusion run's config (`config.sampling`, control scale,
+  conditioning)."""
   clip = config.sampling.clip_x0
-  return to_dataclass(SamplingConfig, config.sampling, clip_x0=clip if clip > 0 else None,
-                      control_scale=config.diffusion.control_scale)
+  return to_dataclass(
+      SamplingConfig, config.sampling, clip_x0=clip if clip > 0 else None,
+      control_scale=config.diffusion.control_scale, conditioning=conditioning(config),
+      residual_decay_s=config.diffusion.get("residual_decay_s",
+                                            SamplingConfig.residual_decay_s))
 
 
 def claim_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.TokenizerConfig,
@@ -161,9 +182,11 @@ class Denoiser:
     """The unconditional token (Q)."""
     return self.unet.null_token
 
-  def apply(self, x: jax.Array, t: jax.Array, q: jax.Array) -> jax.Array:
-    """v (B, 125, 2) of normalised controls x (B, 125, 2) at steps t (B,) for tokens q (B,)."""
-    return unet1d.apply_unet(self.graphdef, self.params, x, t, q)
+  def apply(self, x: jax.Array, t: jax.Array, q: jax.Array,
+            cond: jax.Array | None = None) -> jax.Array:
+    """v (B, 125, 2) of normalised controls x (B, 125, 2) at steps t (B,) for tokens q (B,)
+    (and, for an ego-conditioned run, ego-motion features cond (B, 13), `ego_motion`)."""
+    return unet1d.apply_unet(self.graphdef, self.params, x, t, q, cond=cond)
 
 
 def _abstract(init, model_cfg) -> dict:

@@ -10,6 +10,7 @@ U-Net forward), DDPM(1000) vs DDIM(10) for one scenario, and training steps/s at
 batch 256. Weights are random: speed does not depend on them.
 """
 
+import dataclasses
 import time
 
 from absl import app, flags
@@ -17,9 +18,8 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import diffusion, inference
+from cvmdx_jax import diffusion, ego_motion, inference, runs
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.train import diffusion as diffusion_train
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
@@ -39,11 +39,11 @@ def _time(fn, repeats):
   return (time.perf_counter() - start) / repeats
 
 
-def forward_flops(graphdef, params, batch: int = 1) -> float:
+def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   """XLA's FLOP count of one U-Net forward pass for `batch` sequences."""
-  f = jax.jit(lambda p, x, t, q: unet1d.apply_unet(graphdef, p, x, t, q))
+  f = jax.jit(lambda p, x, t, q, c: unet1d.apply_unet(graphdef, p, x, t, q, cond=c))
   args = (params, jnp.zeros((batch, 125, 2)), jnp.zeros(batch, jnp.int32),
-          jnp.zeros(batch, jnp.int32))
+          jnp.zeros(batch, jnp.int32), jnp.zeros((batch, cond_dim)) if cond_dim else None)
   cost = f.lower(*args).compile().cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) else cost
   return float(cost["flops"])
@@ -54,7 +54,8 @@ def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, r
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(
       graphdef, params, jnp.arange(b) % NUM_TOKENS, jnp.full(b, 5.0), jnp.full(b, 30.0),
-      jnp.zeros(b), keys, schedule=schedule, null_token=NUM_TOKENS, config=config)
+      jnp.zeros(b), keys, jnp.zeros((b, ego_motion.NUM_FEATURES)), schedule=schedule,
+      null_token=NUM_TOKENS, config=config)
   return _time(call, repeats)
 
 
@@ -63,7 +64,8 @@ def train_timing(config, cfg, batch: int, repeats: int):
   state = init_fn(jax.random.key(0))
   step = jax.jit(step_fn, donate_argnums=0)
   data = {"x0": jax.random.uniform(jax.random.key(1), (batch, 125, 2), minval=-1, maxval=1),
-          "q": jnp.arange(batch) % NUM_TOKENS, "weight": jnp.ones(batch)}
+          "q": jnp.arange(batch) % NUM_TOKENS, "weight": jnp.ones(batch),
+          "ego": jnp.zeros((batch, ego_motion.NUM_FEATURES))}
   holder = {"state": state}
 
   def one():
@@ -75,13 +77,13 @@ def train_timing(config, cfg, batch: int, repeats: int):
 def main(argv):
   del argv
   print(f"devices: {jax.devices()}")
-  ddim = inference.SamplingConfig()
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = diffusion_config.get_config(preset)
-    cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=NUM_TOKENS)
+    cfg = runs.unet_config(config, NUM_TOKENS)
+    ddim = inference.SamplingConfig(conditioning=runs.conditioning(config))
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
-    gflop = forward_flops(graphdef, params) / 1e9
+    gflop = forward_flops(graphdef, params, cfg.cond_dim) / 1e9
     per_scenario = gflop * ddim.num_samples * ddim.steps * 2  # cond + uncond per step
     print(f"\n== {name}: {unet1d.count_params(params) / 1e6:.2f} M parameters, "
           f"{gflop:.3f} GFLOP per sample forward, {per_scenario:.1f} GFLOP per scenario "
@@ -90,7 +92,7 @@ def main(argv):
       sec = predict_timing(graphdef, params, b, ddim, _REPEATS.value)
       print(f"predict  B={b:4d}: {sec:8.3f} s/call  {1000 * sec / b:8.1f} ms/scenario  "
             f"{b / sec:7.1f} scenarios/s  {per_scenario * b / sec:6.1f} GFLOP/s")
-    ddpm = inference.SamplingConfig(sampler="ddpm")
+    ddpm = dataclasses.replace(ddim, sampler="ddpm")
     t_ddim = predict_timing(graphdef, params, 1, ddim, 1)
     t_ddpm = predict_timing(graphdef, params, 1, ddpm, 1)
     print(f"DDPM(1000) {t_ddpm:.2f} s vs DDIM(10) {t_ddim:.3f} s per scenario (9 samples): "

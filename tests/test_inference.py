@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import diffusion, inference, normalization, vmm
+from cvmdx_jax import diffusion, ego_motion, inference, normalization, vmm
 from cvmdx_jax.models import unet1d
 
 CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
@@ -76,3 +76,43 @@ def test_control_scale_sets_the_physical_range(model):
   np.testing.assert_allclose(b.controls[..., 0] * 2.0, a.controls[..., 0], rtol=1e-4, atol=1e-6)
   np.testing.assert_allclose(b.controls[..., 1] * 7.0, a.controls[..., 1], rtol=1e-4, atol=1e-6)
   assert float(jnp.abs(b.controls[..., 1]).max()) <= 0.1 + 1e-6
+
+
+def _predict_ego(g, p, ego, keys, config):
+  b = ego.shape[0]
+  return inference.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
+                                 jnp.zeros(b), keys, ego, schedule=diffusion.cosine_schedule(),
+                                 null_token=CFG.null_token, config=config)
+
+
+def test_ego_film_reaches_the_unconditional_branch():
+  cfg = dataclasses.replace(CFG, cond_dim=ego_motion.NUM_FEATURES)
+  g, p = unet1d.init_unet(cfg, jax.random.key(2))
+  p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(3), a.shape), p)
+  ego = jax.random.normal(jax.random.key(4), (2, ego_motion.NUM_FEATURES))
+  keys = jax.random.split(jax.random.key(5), 2)
+  # official form with w = 0 everywhere: the guided v is the unconditional branch alone
+  uncond_only = dataclasses.replace(
+      SAMPLING, conditioning="ego_film",
+      guidance=diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
+  a = _predict_ego(g, p, ego, keys, uncond_only)
+  b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only)
+  assert not np.allclose(a.controls, b.controls)
+  np.testing.assert_array_equal(a.controls, _predict_ego(g, p, ego, keys, uncond_only).controls)
+  with pytest.raises(ValueError, match="needs ego features"):
+    inference.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
+                            keys, schedule=diffusion.cosine_schedule(),
+                            null_token=CFG.null_token, config=uncond_only)
+
+
+def test_ego_residual_adds_the_extrapolated_controls(model):
+  g, p = model
+  ego = jax.random.normal(jax.random.key(6), (2, ego_motion.NUM_FEATURES))
+  keys = jax.random.split(jax.random.key(7), 2)
+  token = _predict_ego(g, p, ego, keys, SAMPLING)
+  residual = dataclasses.replace(SAMPLING, conditioning="ego_residual",
+                                 residual_decay_s=(1.0, 0.5))
+  out = _predict_ego(g, p, ego, keys, residual)
+  base = ego_motion.residual_controls(ego, (1.0, 0.5))[:, None]
+  np.testing.assert_allclose(out.controls, token.controls + base, atol=1e-5)
+  np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)

@@ -8,9 +8,13 @@ official cVMDx code, the sequence is zero-padded centred from 125 to 128 (1 step
 left, 2 right) and the same centred window [1:126] is cropped back; the stride-2
 downsampling pads 1 each side and GroupNorm uses epsilon 1e-5 (`layers`), so
 official checkpoints give the official outputs (`official_import`).
+Beyond the paper, an optional conditioning vector c (B, cond_dim) (ego-motion
+features, `cvmdx_jax.ego_motion`) adds its MLP embedding to the same FiLM
+embedding; the null token drops only q.
 
 Functional use: `graphdef, params = init_unet(config, key)`, then
-`apply_unet(graphdef, params, x_t, t, q)` inside `jax.jit`.
+`apply_unet(graphdef, params, x_t, t, q)` (or `..., cond=c` when cond_dim > 0) inside
+`jax.jit`.
 """
 
 import dataclasses
@@ -43,6 +47,7 @@ class UNetConfig:
     length: sequence length (125).
     padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)),
       (padded_length - length) // 2 zeros on the left, the rest on the right.
+    cond_dim: width of the optional conditioning vector (0 = token only, the paper).
   """
 
   num_tokens: int = 60
@@ -57,6 +62,7 @@ class UNetConfig:
   channels: int = 2
   length: int = constants.T_PRED
   padded_length: int = 128
+  cond_dim: int = 0
 
   def __post_init__(self):
     factor = 2 ** (len(self.channel_mult) - 1)
@@ -70,7 +76,7 @@ class UNetConfig:
 
 
 class UNet1D(nnx.Module):
-  """`model(x_t (B, L, C), t (B,) int, q (B,) int) -> v (B, L, C)`."""
+  """`model(x_t (B, L, C), t (B,) int, q (B,) int[, cond (B, cond_dim)]) -> v (B, L, C)`."""
 
   def __init__(self, config: UNetConfig, *, rngs: nnx.Rngs):
     self.config = config
@@ -85,6 +91,9 @@ class UNet1D(nnx.Module):
     self.time_mlp1 = nnx.Linear(ch, emb_dim, rngs=rngs)
     self.time_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
     self.token_embed = nnx.Embed(config.num_tokens + 1, emb_dim, rngs=rngs)
+    if config.cond_dim:
+      self.cond_mlp1 = nnx.Linear(config.cond_dim, emb_dim, rngs=rngs)
+      self.cond_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
     self.conv_in = nnx.Conv(config.channels, ch, kernel_size=(3,), rngs=rngs)
 
     skip_channels, down_blocks, down_samples, cur = [ch], [], [], ch
@@ -115,13 +124,18 @@ class UNet1D(nnx.Module):
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
 
-  def __call__(self, x_t, t, q, dropout_key=None):
+  def __call__(self, x_t, t, q, dropout_key=None, cond=None):
     cfg = self.config
+    if (cond is None) != (cfg.cond_dim == 0):
+      raise ValueError(f"UNet1D: cond_dim={cfg.cond_dim} but cond is "
+                       f"{None if cond is None else jnp.shape(cond)}")
     keys = iter(jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
                 if dropout_key is not None else [])
     key = lambda: next(keys, None)
     emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
     emb = emb + self.token_embed(q)
+    if cfg.cond_dim:
+      emb = emb + self.cond_mlp2(jax.nn.silu(self.cond_mlp1(cond)))
     length = x_t.shape[1]
     left = (cfg.padded_length - length) // 2
     h = self.conv_in(jnp.pad(x_t, ((0, 0), (left, cfg.padded_length - length - left), (0, 0))))
@@ -155,9 +169,9 @@ def make_graphdef(config: UNetConfig):
   return functional.make_graphdef(lambda rngs: UNet1D(config, rngs=rngs))
 
 
-def apply_unet(graphdef, params, x_t, t, q, dropout_key=None):
-  """Functional forward pass: v (B, L, C)."""
-  return nnx.merge(graphdef, params)(x_t, t, q, dropout_key)
+def apply_unet(graphdef, params, x_t, t, q, dropout_key=None, cond=None):
+  """Functional forward pass: v (B, L, C); cond (B, cond_dim) iff cond_dim > 0."""
+  return nnx.merge(graphdef, params)(x_t, t, q, dropout_key, cond)
 
 
 def count_params(params) -> int:

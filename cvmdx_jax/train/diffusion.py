@@ -1,10 +1,13 @@
 """Training of the motion diffusion model v_theta(x_t, t, q) on the shared loop.
 
-Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2);
-condition: the tokeniser's token q of each training scenario. Loss: the v-loss with
-conditioning dropout to the null token Q. Optimiser: AdamW with linear warm-up and
-cosine decay to `min_lr`, global-norm clipping; an EMA of the weights (with the usual
-warm-up of the decay, min(decay, (1 + step) / (10 + step))) is what inference uses.
+Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 125, 2)
+(with an `ego_*residual` conditioning: of controls minus the ego's extrapolated current
+controls); condition: the tokeniser's token q of each training scenario (and, with an
+`ego_film*` conditioning, its ego-motion features, `cvmdx_jax.ego_motion`). Loss: the
+v-loss with conditioning dropout (of the token only) to the null token Q. Optimiser:
+AdamW with linear warm-up and cosine decay to `min_lr`, global-norm clipping; an EMA of
+the weights (with the usual warm-up of the decay, min(decay, (1 + step) / (10 + step))) is
+what inference uses.
 """
 
 import os
@@ -15,8 +18,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import locking, normalization, runs, sharding, tokens as tokens_lib
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax import ego_motion, locking, normalization, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d
@@ -54,7 +56,8 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
     k_loss, k_drop = jax.random.split(key)
 
     def loss_fn(params):
-      model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop)
+      ego = batch["ego"] if cfg.cond_dim else None
+      model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop, ego)
       return v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
                     cond_drop_prob=cond_drop_prob, weight=batch["weight"])
 
@@ -71,14 +74,20 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
 
 
 def training_data(config) -> tuple[dict, int, str, dict]:
-  """(arrays {x0, q}, Q, dataset id, tokens metadata) of the training split."""
+  """(arrays {x0, q[, ego]}, Q, dataset id, tokens metadata) of the training split."""
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
                                       dataset_id=dataset_id, num_scenarios=len(scenarios))
   scale = tuple(config.diffusion.control_scale)
-  x0 = np.asarray(normalization.normalize_controls(scenarios.controls, scale), np.float32)
-  return {"x0": x0, "q": toks.q.astype(np.int32)}, int(meta["codebook_size"]), dataset_id, meta
+  data, controls = {"q": toks.q.astype(np.int32)}, scenarios.controls
+  if runs.conditioning(config) != "token":
+    data["ego"] = np.asarray(ego_motion.ego_features(scenarios.xi, scenarios.mask))
+    if ego_motion.uses_residual(runs.conditioning(config)):
+      controls = controls - ego_motion.residual_controls(
+          data["ego"], tuple(config.diffusion.residual_decay_s))
+  data["x0"] = np.asarray(normalization.normalize_controls(controls, scale), np.float32)
+  return data, int(meta["codebook_size"]), dataset_id, meta
 
 
 def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
@@ -98,7 +107,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   `metrics.jsonl` and `checkpoints/` (`cvmdx_jax.runs` reads them for inference).
   """
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
-  cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=num_tokens)
+  cfg = runs.unet_config(config, num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
   if sharding.is_primary():

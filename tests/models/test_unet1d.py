@@ -124,3 +124,38 @@ def test_group_norm_epsilon_is_the_official_1e5():
   x = jnp.array([[[0.0, 0.0, 0.0, 0.0], [2e-3, 2e-3, 2e-3, 2e-3]]])  # (1, 2, 4): var 1e-6
   want = np.array([-1e-3, 1e-3]) / np.sqrt(1e-6 + 1e-5)  # per group, (x - mean) / sqrt(var + eps)
   np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)
+
+
+EGO = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
+                        attention_levels=(1,), num_heads=2, cond_dim=13)
+
+
+def test_conditioning_vector_shapes_params_and_null_branch():
+  g, p = unet1d.init_unet(EGO, jax.random.key(5))
+  e = EGO.emb_mult * EGO.base_channels
+  # the token-only count plus the two-layer MLP of the conditioning vector
+  assert unet1d.count_params(p) == _params_count_by_hand(EGO) + 13 * e + e + e * e + e
+  p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(6), a.shape), p)
+  x, t, q = _inputs()
+  c1 = jax.random.normal(jax.random.key(7), (3, 13))
+  c2 = c1.at[:, 1].add(1.0)
+  out = unet1d.apply_unet(g, p, x, t, q, cond=c1)
+  assert out.shape == (3, 125, 2)
+  null = jnp.full_like(q, EGO.null_token)
+  # the unconditional (null-token) branch still depends on the conditioning vector
+  assert not np.allclose(unet1d.apply_unet(g, p, x, t, null, cond=c1),
+                         unet1d.apply_unet(g, p, x, t, null, cond=c2))
+  assert not np.allclose(out, unet1d.apply_unet(g, p, x, t, q, cond=c2))
+  np.testing.assert_array_equal(out, unet1d.apply_unet(g, p, x, t, q, cond=c1))
+  solo = unet1d.apply_unet(g, p, x[1:2], t[1:2], q[1:2], cond=c1[1:2])
+  np.testing.assert_allclose(solo, out[1:2], atol=1e-5)
+
+
+def test_conditioning_vector_required_iff_configured():
+  g, p = unet1d.init_unet(EGO, jax.random.key(8))
+  x, t, q = _inputs()
+  with pytest.raises(ValueError, match="cond_dim=13"):
+    unet1d.apply_unet(g, p, x, t, q)
+  g0, p0 = unet1d.init_unet(TINY, jax.random.key(8))
+  with pytest.raises(ValueError, match="cond_dim=0"):
+    unet1d.apply_unet(g0, p0, x, t, q, cond=jnp.zeros((3, 13)))
