@@ -23,6 +23,7 @@ import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 from absl import app, flags
 from ml_collections import config_flags
@@ -41,7 +42,7 @@ def _script() -> str:
   return Path(sys.argv[0]).stem
 
 
-def fail(message: str) -> None:
+def fail(message: str) -> NoReturn:
   """Prints `<script>: error: <message>` (one line) to stderr and exits with status 2."""
   print(f"{_script()}: error: {' '.join(message.split())}", file=sys.stderr)
   sys.exit(USAGE_STATUS)
