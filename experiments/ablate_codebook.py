@@ -26,8 +26,16 @@ _SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"], "
 _QUANTIZERS = flags.DEFINE_list("quantizers", ["cvq"], "cvq and/or vq.")
 _TOK = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.py preset.")
 _DIFF = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
-_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced test subset (0 = all).")
+_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced test subset (0 = all).",
+                            lower_bound=0)
 flags.mark_flags_as_required(["data_dir", "workdir"])
+cli.input_dirs("data_dir")
+cli.output_dirs("workdir")
+cli.int_list("codebook_sizes", 1)
+cli.presets("tokenizer_preset", tokenizer_config.get_config)
+cli.presets("diffusion_preset", diffusion_config.get_config)
+flags.register_validator("quantizers", lambda v: set(v) <= {"cvq", "vq"},
+                         "expected cvq and/or vq, comma-separated")
 READOUTS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k")
 
 
@@ -59,9 +67,9 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   root = Path(_WORKDIR.value)
-  root.mkdir(parents=True, exist_ok=True)
   rows = {(quantizer, int(q)): run_one(root, _DATA.value, quantizer, int(q))
           for quantizer in _QUANTIZERS.value for q in _SIZES.value}
+  root.mkdir(parents=True, exist_ok=True)
   text = table(rows)
   atomic.write_text(root / "ablation.md", text)
   atomic.write_json(root / "ablation.json",

@@ -13,7 +13,7 @@ batch 256. Weights are random: speed does not depend on them.
 import dataclasses
 import time
 
-from absl import app, flags
+from absl import flags
 import jax
 import jax.numpy as jnp
 
@@ -21,6 +21,7 @@ from configs import diffusion as diffusion_config
 from cvmdx_jax import diffusion, ego_motion, inference, runs
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import diffusion as diffusion_train
+from cvmdx_jax import cli
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
 _REF_BATCH = flags.DEFINE_integer("reference_batch", 16,
@@ -101,5 +102,8 @@ def main(argv):
     print(f"train    B={_TRAIN_BATCH.value}: {sec:.3f} s/step  {1 / sec:.2f} steps/s")
 
 
+for _name in ("demo_batch", "reference_batch", "train_batch", "repeats"):
+  flags.register_validator(_name, lambda v: v >= 1, "must be >= 1")
+
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -30,6 +30,7 @@ from sklearn import exceptions
 from sklearn import mixture
 import threadpoolctl
 
+from cvmdx_jax import cli
 from cvmdx_jax import diffusion
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
@@ -40,9 +41,13 @@ fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "c
 
 _SECTIONS = flags.DEFINE_list("sections", ["samplers", "hypotheses", "recovery"],
                               "Sections to run.")
-_NUM_SCENARIOS = flags.DEFINE_integer("num_scenarios", 1000, "Scenarios per benchmark.")
-_NUM_SAMPLES = flags.DEFINE_integer("num_samples", 9, "Sampled trajectories per scenario.")
-_SEED = flags.DEFINE_integer("seed", 0, "Seed of the synthetic mode sets.")
+_NUM_SCENARIOS = flags.DEFINE_integer("num_scenarios", 1000, "Scenarios per benchmark.",
+                                      lower_bound=1)
+_NUM_SAMPLES = flags.DEFINE_integer(
+    "num_samples", 9, "Sampled trajectories per scenario (2 per mode, up to 3 modes).",
+    lower_bound=6)
+_SEED = flags.DEFINE_integer("seed", 0, "Seed of the synthetic mode sets.", lower_bound=0,
+                             upper_bound=2**32 - 2)
 
 # (scaling, reg_covar, pca_dim) rows of the recovery table; the last row is
 # the official evaluation's variant.
@@ -184,4 +189,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -20,7 +20,7 @@ from pathlib import Path
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import atomic, metrics, tokens
+from cvmdx_jax import atomic, cli, metrics, tokens
 from cvmdx_jax.evaluation import baselines
 from cvmdx_jax.data import dataset
 from cvmdx_jax.models import quantizer as quantizer_lib
@@ -32,6 +32,8 @@ _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (one run per r
 _SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"],
                            "Codebook sizes Q to compare.")
 flags.mark_flags_as_required(["config", "workdir"])
+cli.output_dirs("workdir")
+cli.int_list("codebook_sizes", 1)
 
 
 def _errors(pred, test) -> str:
@@ -77,4 +79,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

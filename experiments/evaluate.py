@@ -15,11 +15,15 @@ _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory of the report.")
 _SPLIT = flags.DEFINE_string("split", "test", "Split to evaluate.")
-_SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.")
-_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 = all).")
+_SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_bound=2**32 - 1)
+_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 = all).",
+                            lower_bound=0)
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 300,
-                             "Scenarios for the single-DDPM-sample baseline (0 = skip).")
+                             "Scenarios for the single-DDPM-sample baseline (0 = skip).",
+                             lower_bound=0)
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
+cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir")
+cli.output_dirs("workdir")
 
 
 def main(argv):

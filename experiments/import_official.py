@@ -30,10 +30,13 @@ _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA sta
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
 _KEY = flags.DEFINE_string("key", None, "Entry of a dict holding several state dicts.")
 _NUM_HEADS = flags.DEFINE_integer("num_heads", official_import.OFFICIAL_NUM_HEADS,
-                                  "Attention heads of the official model (not stored in it).")
+                                  "Attention heads of the official model (not stored in it).",
+                                  lower_bound=1)
 _TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
                                      "Tokeniser run to pair with (codebook size Q).")
 flags.mark_flags_as_required(["checkpoint", "workdir"])
+cli.input_dirs("tokenizer_dir")
+cli.output_dirs("workdir")
 
 
 def write_run(workdir: Path, config, cfg, params, fingerprint: dict) -> None:

@@ -11,30 +11,26 @@ non-zero with a message naming file, row and column on bad input.
 """
 
 import json
-import sys
 import time
 from pathlib import Path
 
 from absl import app, flags
 from ml_collections import config_flags
 
-from cvmdx_jax import atomic
+from cvmdx_jax import atomic, cli
 from cvmdx_jax.data import dataset, summary
-from cvmdx_jax.data.errors import DataError
 
 _CONFIG = config_flags.DEFINE_config_file("config", "configs/dataset.py", "Dataset config.",
                                           lock_config=True)
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Output directory.")
+cli.output_dirs("data_dir")
 
 
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   start = time.time()
-  try:
-    splits = dataset.build(_CONFIG.value, _DATA_DIR.value)
-  except DataError as err:
-    sys.exit(f"make_dataset: {err}")
+  splits = dataset.build(_CONFIG.value, _DATA_DIR.value)
   result = {"dataset_id": dataset.dataset_id(_DATA_DIR.value),
             "seconds": round(time.time() - start, 1), "splits": summary.summarize(splits)}
   text = json.dumps(result, indent=1)
@@ -43,4 +39,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -14,6 +14,7 @@ from cvmdx_jax import atomic, cli
 from cvmdx_jax.data import sumo_stats
 
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Dataset directory (make_dataset.py).")
+cli.input_dirs("data_dir")
 
 
 def main(argv):

@@ -9,13 +9,14 @@ from absl import app, flags, logging
 import jax
 from ml_collections import config_flags
 
-from cvmdx_jax import sharding
+from cvmdx_jax import cli, sharding
 from cvmdx_jax.train import diffusion
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
                                           lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
+cli.output_dirs("workdir")
 
 
 def main(argv):
@@ -27,4 +28,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -11,13 +11,14 @@ from ml_collections import config_flags
 
 import jax
 
-from cvmdx_jax import sharding
+from cvmdx_jax import cli, sharding
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:tiny.", lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics, tokens).")
 flags.mark_flags_as_required(["config", "workdir"])
+cli.output_dirs("workdir")
 
 
 def main(argv):
@@ -30,4 +31,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

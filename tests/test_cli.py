@@ -1,26 +1,187 @@
-"""Entry-point runner: bad input exits with status 2 and names the script."""
+"""Entry points: a user's mistake gives one line `<script>: error: <message>` naming the
+flag, file or field, exit status 2 and no traceback, before any work is done.
+
+Each case runs the script in a subprocess (`JAX_PLATFORMS=cpu`), about 2-3 s each: every
+script gets an unknown flag, a bad value of a numeric flag or config field, a missing
+input directory and, where it has a config, a bad preset or field; the other kinds of
+user error (unwritable output directory, garbled JSON, locked workdir, missing dataset,
+wrong type, NaN, missing config file, missing required flag, stray argument) once each.
+"""
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
-from cvmdx_jax import cli
+from configs import diffusion as diffusion_config
+from cvmdx_jax import cli, locking
+
+REPO = Path(__file__).resolve().parents[1]
+# absl INFO lines (a script may log its devices before it fails): not error output
+_INFO = re.compile(r"^I\d{4} \d\d:\d\d:\d\d")
 
 
-@pytest.mark.parametrize("error", [ValueError("bad split"), FileNotFoundError("no run")])
-def test_bad_input_exits_2_with_the_message(monkeypatch, capsys, error):
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+  """{T}: an empty directory, a plain file, a dataset directory with a garbled
+  recordings/plans.json and a directory whose lock this process holds."""
+  root = tmp_path_factory.mktemp("cli")
+  (root / "empty").mkdir()
+  (root / "file").write_text("not a directory\n")
+  (root / "garbled" / "recordings").mkdir(parents=True)
+  (root / "garbled" / "recordings" / "plans.json").write_text('{"1": {"split": "tr')
+  with locking.hold(root / "locked"):
+    yield root
+
+
+# (script, arguments, text the error line must contain); {T} is the `inputs` directory,
+# {NEW} a fresh path that must still not exist afterwards.
+TOK = "--config=configs/tokenizer.py:tiny"
+DIFF = "--config=configs/diffusion.py:tiny"
+DATA = "--config=configs/dataset.py:tiny"
+EVAL = "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty --data_dir={T}/empty"
+CASES = [
+    ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --nosuch=1", "'nosuch'"),
+    ("ablate_codebook", "--data_dir={T}/nosuch --workdir={NEW}", "--data_dir="),
+    ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --max_scenarios=-1",
+     "--max_scenarios=-1"),
+    ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --diffusion_preset=nosuch",
+     "--diffusion_preset=nosuch"),
+    ("benchmark", "--nosuch=1", "'nosuch'"),
+    ("benchmark", "--repeats=0", "--repeats=0"),
+    ("benchmark_sampling", "--nosuch=1", "'nosuch'"),
+    ("benchmark_sampling", "--num_samples=2", "--num_samples=2"),
+    ("codebook_health", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("codebook_health", "--config=configs/tokenizer.py:nosuch --workdir={NEW}",
+     "--config=configs/tokenizer.py:nosuch"),
+    ("codebook_health", f"{TOK} --config.data_dir={{T}}/nosuch --workdir={{NEW}}",
+     "--config.data_dir="),
+    ("codebook_health", f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}} "
+     "--codebook_sizes=0", "--codebook_sizes="),
+    ("codebook_health", f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}}",
+     "empty/cache/metadata.json"),  # no dataset there
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("evaluate", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
+     "--data_dir={T}/empty --workdir={NEW}", "--tokenizer_dir="),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --max_scenarios=-5", "--max_scenarios=-5"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --seed=4294967296", "--seed=4294967296"),
+    ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
+    ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
+    ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
+     "--tokenizer_dir="),
+    ("import_official", "--checkpoint={T}/nosuch.pt --workdir={NEW}", "--checkpoint="),
+    ("import_official", "--checkpoint={T}/file --workdir={NEW} --num_heads=0",
+     "--num_heads=0"),
+    ("make_dataset", f"{DATA} --data_dir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.nosuch=1", "--config.nosuch"),
+    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.sumo.workers=two",
+     "--config.sumo.workers=two"),  # wrong type
+    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.sumo.duration_s=-60",
+     "--config.sumo.duration_s=-60"),
+    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.source=highd "
+     "--config.highd_dir={T}/nosuch", "--config.highd_dir="),
+    ("make_dataset", f"{DATA} --data_dir={{T}}/locked", "pid"),  # WorkdirLockedError
+    ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
+    ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
+    ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
+    ("run_demo", "--workdir={NEW} --nosuch=1", "'nosuch'"),
+    ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
+    ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("train_diffusion", "--config=configs/diffusion.py:nosuch --workdir={NEW}",
+     "--config=configs/diffusion.py:nosuch"),
+    ("train_diffusion", "--config=configs/nosuch.py --workdir={NEW}",
+     "--config=configs/nosuch.py"),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.train.nosuch=1",
+     "--config.train.nosuch"),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
+     "--config.data_dir="),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.train.num_epochs=-3",
+     "--config.train.num_epochs=-3"),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.sampling.guidance.w_min=nan",
+     "--config.sampling.guidance.w_min=nan"),
+    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.diffusion.control_scale=fast",
+     "--config.diffusion.control_scale="),
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("train_tokenizer", "--config=configs/tokenizer.py:q=sixty --workdir={NEW}",
+     "--config=configs/tokenizer.py:q=sixty"),
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
+     "--config.data_dir="),
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.train.batch_size=0", "--config.train.batch_size=0"),
+    ("train_tokenizer", "--workdir={NEW}", "--config"),  # required flag missing
+    ("train_tokenizer", f"{TOK} --workdir={{T}}/locked --config.data_dir={{T}}/empty",
+     "pid"),  # WorkdirLockedError
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty stray",
+     "stray"),
+]
+
+
+@pytest.mark.parametrize("index", range(len(CASES)),
+                         ids=[f"{script}-{i}" for i, (script, _, _) in enumerate(CASES)])
+def test_user_error_is_one_line_exit_2(inputs, index):
+  script, args, named = CASES[index]
+  new = inputs / "new" / str(index)
+  argv = args.format(T=inputs, NEW=new).split()
+  env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+  proc = subprocess.run([sys.executable, f"experiments/{script}.py", *argv], cwd=REPO,
+                        env=env, capture_output=True, text=True, timeout=120)
+  lines = [line for line in proc.stderr.splitlines() if not _INFO.match(line)]
+  assert proc.returncode == 2, proc.stderr
+  assert "Traceback" not in proc.stderr
+  assert len(lines) == 1, proc.stderr
+  assert lines[0].startswith(f"{script}: error: "), lines[0]
+  assert named in lines[0]
+  assert not new.exists()  # refused before anything was written
+
+
+def test_cases_cover_every_script():
+  scripts = {p.stem for p in (REPO / "experiments").glob("*.py")}
+  assert {script for script, _, _ in CASES} == scripts
+
+
+# In-process checks of the runner.
+
+
+def _run(monkeypatch, main):
   monkeypatch.setattr("sys.argv", ["/x/evaluate.py"])
-
-  def main(argv):
-    raise error
   with pytest.raises(SystemExit) as exit_info:
     cli.run(main)
-  assert exit_info.value.code == 2
+  return exit_info.value.code
+
+
+@pytest.mark.parametrize("error", [FileNotFoundError("no run"), PermissionError("denied")])
+def test_path_errors_exit_2_with_the_message(monkeypatch, capsys, error):
+  def main(argv):
+    raise error
+  assert _run(monkeypatch, main) == 2
   assert capsys.readouterr().err == f"evaluate: error: {error}\n"
 
 
-def test_other_errors_propagate(monkeypatch):
-  monkeypatch.setattr("sys.argv", ["prog"])
-
+def test_value_error_of_our_code_is_a_user_error(monkeypatch, capsys):
   def main(argv):
-    raise KeyError("bug")
-  with pytest.raises(KeyError):
-    cli.run(main)
+    diffusion_config.get_config("nosuch")
+  assert _run(monkeypatch, main) == 2
+  assert capsys.readouterr().err.startswith("evaluate: error: config arg 'nosuch'")
+
+
+@pytest.mark.parametrize("bug", [lambda: json.loads("{"), lambda: {}["key"]])
+def test_other_errors_keep_their_traceback(monkeypatch, bug):
+  """A ValueError raised inside a library (here json) is not the user's; nor a KeyError."""
+  monkeypatch.setattr("sys.argv", ["prog"])
+  with pytest.raises((ValueError, KeyError)):
+    cli.run(lambda argv: bug())
+
+
+def test_writable(tmp_path):
+  (tmp_path / "file").write_text("x")
+  assert cli.writable(tmp_path) and cli.writable(tmp_path / "a" / "b")
+  assert not cli.writable(tmp_path / "file") and not cli.writable(tmp_path / "file" / "a")
+  assert not (tmp_path / "a").exists()  # nothing made

@@ -15,6 +15,7 @@ import pandas as pd
 
 from cvmdx_jax import constants
 from cvmdx_jax.data import highd, sumo
+from cvmdx_jax.data.errors import DataError
 
 
 def lane_change_durations(rec: highd.Recording, lat_speed_ms: float = 0.1) -> np.ndarray:
@@ -63,6 +64,9 @@ def plan_columns(plan: dict) -> dict:
 def sumo_table(rec_dir) -> list:
   """One row per recording of a SUMO `recordings` directory: plan columns + statistics."""
   rec_dir = Path(rec_dir)
-  plans = json.loads((rec_dir / sumo.PLANS_FILE).read_text())
+  try:
+    plans = json.loads((rec_dir / sumo.PLANS_FILE).read_text())
+  except ValueError as e:
+    raise DataError(rec_dir / sumo.PLANS_FILE, f"not valid JSON ({e})") from e
   return [{"recording": int(rid), **plan_columns(plan), **recording_stats(rec_dir, int(rid))}
           for rid, plan in sorted(plans.items(), key=lambda kv: int(kv[0]))]
