@@ -14,6 +14,7 @@ replicated once, when the `Predictor` is made. Scenario i always draws its noise
 
 import dataclasses
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -87,7 +88,9 @@ class Predictor:
   @classmethod
   def load(cls, tokenizer_dir, diffusion_dir, sampling: SamplingConfig | None = None,
            chunk_size: int = 256) -> "Predictor":
-    """Loads both runs and checks that they belong together.
+    """Loads both runs and checks that they belong together: the denoiser must have been
+    trained on tokens of exactly this tokeniser checkpoint (fingerprint, which includes
+    the dataset id, step and, for runs that recorded it, the sha256 of its parameters).
 
     Raises:
       IncompatibleRunsError: the denoiser was trained on tokens of another tokeniser
@@ -95,17 +98,23 @@ class Predictor:
     """
     bundle = runs.load_tokenizer(tokenizer_dir)
     denoiser = runs.load_denoiser(diffusion_dir)
-    used = checkpointing.to_json(denoiser.fingerprint.to_dict())
-    used = used.get("tokenizer", {}).get("fingerprint")
+    used = checkpointing.to_json(denoiser.fingerprint.to_dict()).get("tokenizer", {})
     given = checkpointing.to_json(bundle.fingerprint.to_dict())
     q = bundle.config.quantizer.codebook_size
-    if denoiser.unet.num_tokens != q or used != given:
-      differing = sorted(k for k in set(used or {}) | set(given)
-                         if (used or {}).get(k) != given.get(k))
+    differing = sorted(f"fingerprint.{k}" for k in set(used.get("fingerprint") or {}) | set(given)
+                       if (used.get("fingerprint") or {}).get(k) != given.get(k))
+    if "params_sha256" not in used:
+      warnings.warn(f"denoiser {diffusion_dir} does not record the sha256 of its tokeniser's "
+                    "parameters (trained before it existed); only fingerprint and step are "
+                    "checked; retrain it to protect the pair", stacklevel=2)
+    differing += [f"{k} (denoiser trained on {used[k]!r}, tokeniser has {bundle.checkpoint[k]!r})"
+                  for k in ("step", "params_sha256")
+                  if k in used and used[k] != bundle.checkpoint[k]]
+    if denoiser.unet.num_tokens != q or differing:
       raise IncompatibleRunsError(
           f"denoiser {diffusion_dir} was not trained on tokens of tokeniser {tokenizer_dir}: "
           f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
-          f"tokeniser fingerprint keys: {differing}")
+          f"tokeniser checkpoint keys: {differing}")
     trained = runs.sampling_config(denoiser.config)
     sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale,
                                    conditioning=trained.conditioning,

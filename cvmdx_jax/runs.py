@@ -14,6 +14,15 @@ A diffusion run (`cvmdx_jax.train.diffusion`):
     <dir>/checkpoints/<epoch>/   train state {"step", "params", "ema_params", "opt_state"}
     <dir>/metrics.jsonl
 
+Integrity: tokenizer.json, config.json, model.json and tokens/*.npz are checksummed
+(`cvmdx_jax.checksums`, a checksums.json per directory) and checkpoints carry the sha256
+of every leaf (`cvmdx_jax.checkpointing`); the loaders verify both and raise
+`CorruptRunError` / `CheckpointMismatchError` naming the file. The trainers check a
+resumed directory (`check_tokenizer_dir`, the checkpoint's fingerprint) before they write
+anything into it (`write_tokenizer_dir`, `write_diffusion_dir`). A denoiser's fingerprint
+records the tokeniser checkpoint it was trained on (fingerprint, step and
+`params_sha256`, the `checkpointing.tree_digest` of the tokeniser's parameters).
+
 `load_tokenizer` and `load_denoiser` restore only what inference needs (the tokeniser's
 parameters and step, the denoiser's EMA parameters) into an abstract tree built from the
 saved model config: no optimiser and no trainer code is involved (this module imports
@@ -31,8 +40,9 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from cvmdx_jax import atomic, checkpointing, ego_motion, sharding, tokens
+from cvmdx_jax import checkpointing, checksums, ego_motion, sharding, tokens
 from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.checksums import CorruptRunError
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.inference import SamplingConfig
 from cvmdx_jax.models import scenario_norm, unet1d, uncertainty
@@ -76,6 +86,8 @@ def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetCo
          "dataset_id": dataset_id,
          "tokenizer": {"fingerprint": checkpoint.get("fingerprint"),
                        "step": checkpoint.get("step")}}
+  if "params_sha256" in checkpoint:  # tokens of tokenisers trained before it lack it
+    out["tokenizer"]["params_sha256"] = checkpoint["params_sha256"]
   if conditioning(config) != "token":  # token-only fingerprints stay as they were
     out["conditioning"] = {"name": conditioning(config), "features": ego_motion.NUM_FEATURES,
                            "residual_decay_s": list(config.diffusion.residual_decay_s)}
@@ -93,23 +105,29 @@ def sampling_config(config) -> SamplingConfig:
                                             SamplingConfig.residual_decay_s))
 
 
-def claim_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.TokenizerConfig,
-                        fingerprint: dict) -> None:
-  """Writes <workdir>/tokenizer.json, or checks that an existing one has `fingerprint`
-  (so another Q / latent size / dataset is refused naming the differing keys).
+def check_tokenizer_dir(workdir: str | os.PathLike, fingerprint: dict) -> None:
+  """Checks (writing nothing) that <workdir>/tokenizer.json, if any, is intact and has
+  `fingerprint` (so another Q / latent size / dataset is refused naming the differing keys).
 
   Raises:
     CheckpointMismatchError: the directory holds a tokeniser run of another fingerprint.
+    CorruptRunError: tokenizer.json is corrupt.
   """
-  workdir = Path(workdir)
-  path = workdir / TOKENIZER_JSON
+  path = Path(workdir) / TOKENIZER_JSON
   if path.is_file():
-    checkpointing.check_metadata(json.loads(path.read_text())["fingerprint"], fingerprint,
-                                 str(workdir))
+    saved = _read_json(path, "tokeniser")
+    checkpointing.check_metadata(saved.get("fingerprint"), fingerprint, str(workdir))
+
+
+def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.TokenizerConfig,
+                        fingerprint: dict) -> None:
+  """Writes <workdir>/tokenizer.json (after `check_tokenizer_dir` and the checkpoint check)."""
+  workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   if sharding.is_primary():  # one writer under jax.distributed
-    atomic.write_json(path, {"model": dataclasses.asdict(model_cfg), "fingerprint": fingerprint},
-                      indent=1, sort_keys=True)
+    checksums.write_json(workdir / TOKENIZER_JSON, {"model": dataclasses.asdict(model_cfg),
+                                                    "fingerprint": fingerprint},
+                         indent=1, sort_keys=True)
 
 
 def write_diffusion_dir(workdir: str | os.PathLike, config: ml_collections.ConfigDict,
@@ -117,8 +135,8 @@ def write_diffusion_dir(workdir: str | os.PathLike, config: ml_collections.Confi
   """Writes <workdir>/config.json (the run's config) and model.json (the U-Net config)."""
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(workdir / CONFIG_JSON, json.loads(config.to_json_best_effort()))
-  atomic.write_json(workdir / MODEL_JSON, {"unet": dataclasses.asdict(unet)})
+  checksums.write_json(workdir / CONFIG_JSON, json.loads(config.to_json_best_effort()))
+  checksums.write_json(workdir / MODEL_JSON, {"unet": dataclasses.asdict(unet)})
 
 
 def _static():
@@ -136,6 +154,8 @@ class TokenizerBundle:
     graphdef: the NNX graph definition.
     config: the static model settings.
     fingerprint: the run's fingerprint (`tokenizer_fingerprint`).
+    checkpoint: {"step", "params_sha256"} of the checkpoint the parameters come from
+      (None for a bundle not loaded from a run).
   """
 
   params: dict
@@ -143,6 +163,8 @@ class TokenizerBundle:
   graphdef: nnx.GraphDef = _static()
   config: tokenizer_lib.TokenizerConfig = _static()
   fingerprint: ml_collections.FrozenConfigDict = _static()
+  checkpoint: ml_collections.FrozenConfigDict | None = dataclasses.field(
+      default=None, metadata={"static": True})
 
   def tokenize(self, xi: jax.Array, mask: jax.Array):
     """Tokens of B scenarios (jittable).
@@ -204,11 +226,15 @@ def _restore(workdir: Path, abstract: dict) -> tuple[dict, dict]:
 
 
 def _read_json(path: Path, what: str) -> dict:
+  """A checksummed JSON object; CorruptRunError naming `path` when corrupt."""
   try:
-    return json.loads(path.read_text())
-  except (OSError, ValueError) as e:
+    value = checksums.read_json(path)
+  except OSError as e:
     raise FileNotFoundError(f"{path}: missing or unreadable; not a {what} run directory "
                             f"({e})") from e
+  if not isinstance(value, dict):
+    raise CorruptRunError(f"{path}: expected a JSON object, got {type(value).__name__}")
+  return value
 
 
 def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
@@ -217,7 +243,8 @@ def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
   Raises:
     FileNotFoundError: the workdir holds no tokeniser run (no tokenizer.json) or its
       outputs are missing (the run has not finished).
-    CheckpointMismatchError: the checkpoint does not match the run's settings.
+    CheckpointMismatchError: the checkpoint does not match the run's settings or is corrupt.
+    CorruptRunError: tokenizer.json or gaussians.npz is corrupt.
     tokens.TokensMismatchError: the saved Gaussians belong to another checkpoint.
   """
   workdir = Path(workdir)
@@ -232,13 +259,18 @@ def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
   checkpointing.check_metadata(fingerprint, saved["fingerprint"], str(workdir / CHECKPOINTS))
   gpath = tokens.gaussians_path(workdir)
   gaussians, gmeta = tokens.load_gaussians(gpath)
-  if gmeta["checkpoint"]["step"] != int(state["step"]):
-    raise tokens.TokensMismatchError(
-        f"{gpath}: Gaussians fitted at step {gmeta['checkpoint']['step']}, the checkpoint "
-        f"is at step {int(state['step'])}; rerun train_and_evaluate")
+  checkpoint = {"step": int(state["step"]),
+                "params_sha256": checkpointing.tree_digest(state["params"])}
+  fitted = gmeta.get("checkpoint", {})
+  for key in ("step", "params_sha256") if "params_sha256" in fitted else ("step",):
+    if fitted.get(key) != checkpoint[key]:
+      raise tokens.TokensMismatchError(
+          f"{gpath}: Gaussians fitted on the checkpoint with {key} {fitted.get(key)}, the "
+          f"checkpoint has {checkpoint[key]}; rerun train_and_evaluate")
   return TokenizerBundle(state["params"], jax.tree.map(jnp.asarray, gaussians),
                          tokenizer_lib.make_graphdef(model_cfg), model_cfg,
-                         ml_collections.FrozenConfigDict(saved["fingerprint"]))
+                         ml_collections.FrozenConfigDict(saved["fingerprint"]),
+                         ml_collections.FrozenConfigDict(checkpoint))
 
 
 def _restore_ema(workdir: Path, abstract: dict) -> tuple[dict, dict]:
@@ -261,7 +293,9 @@ def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
 
   Raises:
     FileNotFoundError: no config.json / model.json (not a diffusion run directory).
-    CheckpointMismatchError: no complete checkpoint, or one of another model size.
+    CorruptRunError: config.json or model.json is corrupt.
+    CheckpointMismatchError: no complete checkpoint, one of another model size, or a
+      corrupt one.
   """
   workdir = Path(workdir)
   config = _read_json(workdir / CONFIG_JSON, "diffusion")

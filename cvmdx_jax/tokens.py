@@ -9,20 +9,20 @@ can be tokenised by several tokenisers without them overwriting each other):
 
 Each file holds a JSON `metadata` string: dataset_id, data_dir, split, num_scenarios,
 codebook_size, latent_dim, quantizer and the tokeniser checkpoint (workdir, step,
-fingerprint). Files are written with `atomic.write_npz`, so a reader never sees a
-half-written one. `load_tokens(..., dataset_id=...)` refuses tokens made from another
+fingerprint, params_sha256). Files are written atomically and checksummed
+(`cvmdx_jax.checksums`): a reader never sees a half-written one, and a corrupted one
+raises `checksums.CorruptRunError` naming it. `load_tokens(..., dataset_id=...)` refuses tokens made from another
 dataset with `TokensMismatchError`.
 """
 
 import dataclasses
 import json
 import os
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import atomic
+from cvmdx_jax import checksums
 from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"
@@ -59,19 +59,19 @@ def gaussians_path(workdir: str | os.PathLike) -> Path:
 
 def _write_npz(path: Path, arrays: dict, metadata: dict) -> None:
   path.parent.mkdir(parents=True, exist_ok=True)
-  atomic.write_npz(path, metadata=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
+  checksums.write_npz(path, metadata=np.array(json.dumps(metadata, sort_keys=True)), **arrays)
 
 
 def _read_npz(path: Path, names: tuple[str, ...]) -> tuple[dict, dict]:
   if not path.is_file():
     raise FileNotFoundError(f"{path}: no such tokens file (train the tokeniser first)")
+  data = checksums.read_npz(path)
+  missing = [n for n in (*names, "metadata") if n not in data]
+  arrays = {n: data[n] for n in names if n in data}
   try:
-    with np.load(path, allow_pickle=False) as data:
-      missing = [n for n in (*names, "metadata") if n not in data.files]
-      arrays = {n: data[n] for n in names if n in data.files}
-      metadata = json.loads(str(data["metadata"])) if "metadata" in data.files else {}
-  except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
-    raise ValueError(f"{path}: unreadable tokens file ({e})") from e
+    metadata = json.loads(str(data["metadata"])) if "metadata" in data else {}
+  except ValueError as e:
+    raise checksums.CorruptRunError(f"{path}: unreadable metadata ({e})") from e
   if missing:
     raise ValueError(f"{path}: missing field(s) {missing}")
   return arrays, metadata

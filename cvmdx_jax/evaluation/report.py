@@ -13,7 +13,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, constants, locking, tokens as tokens_lib
+from cvmdx_jax import atomic, checksums, constants, locking, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, scoring
@@ -80,6 +80,6 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q)))}
-  atomic.write_json(workdir / "metrics.json", {**results, "_meta": meta})
+  checksums.write_json(workdir / "metrics.json", {**results, "_meta": meta})
   atomic.write_text(workdir / "results.md", scoring.markdown_tables(results))
   return results

@@ -110,11 +110,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   cfg = runs.unet_config(config, num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
-  if sharding.is_primary():
-    runs.write_diffusion_dir(workdir, config, cfg)
+
+  def write_run_files():  # only once the checkpoint's fingerprint has been checked
+    if sharding.is_primary():
+      runs.write_diffusion_dir(workdir, config, cfg)
+
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
       fingerprint=runs.diffusion_fingerprint(config, cfg, dataset_id, tokens_meta),
-      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep, desc="diffusion")
+      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
+      on_start=write_run_files, desc="diffusion")
 

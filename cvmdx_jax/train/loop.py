@@ -114,7 +114,7 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
           data: Mapping[str, np.ndarray], batch_size: int, num_epochs: int, seed: int,
           fingerprint: Any, checkpoint_every: int = 1, keep: int = 2,
           epoch_end_fn: Callable[[State, int], dict[str, Any]] | None = None,
-          desc: str = "train") -> State:
+          on_start: Callable[[], None] | None = None, desc: str = "train") -> State:
   """Trains (or resumes, or returns a finished run's final state) data-parallel.
 
   Args:
@@ -133,6 +133,8 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
     keep: number of latest checkpoints kept.
     epoch_end_fn: `epoch_end_fn(state, epoch) -> dict` of extra JSON-able values logged
       (`state` as `train` returns it).
+    on_start: called once the workdir's checkpoint (if any) has been checked, before
+      `train` writes anything into the workdir (e.g. to write the run's own files).
     desc: progress bar label.
 
   Returns:
@@ -170,6 +172,8 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
       checkpointing.check_metadata(saved, run_meta, str(ckpts.root / str(done)))
     else:
       state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
+    if on_start is not None:
+      on_start()
     primary = sharding.is_primary()
     if primary:
       _trim_metrics(workdir / runs.METRICS, done)

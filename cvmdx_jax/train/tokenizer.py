@@ -21,7 +21,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import locking, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import checkpointing, locking, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
@@ -141,7 +141,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   tx = optimizer(config)
   graphdef = tokenizer_lib.make_graphdef(model_cfg)
   fp = runs.tokenizer_fingerprint(model_cfg, dataset_id)
-  runs.claim_tokenizer_dir(workdir, model_cfg, fp)
+  runs.check_tokenizer_dir(workdir, fp)
   xi_train, mask_train = jnp.asarray(train.xi), jnp.asarray(train.mask)
 
   def epoch_end_fn(state, epoch):
@@ -159,7 +159,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
       seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
       keep=config.train.keep,
-      epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}")
+      epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}",
+      on_start=lambda: runs.write_tokenizer_dir(workdir, model_cfg, fp))
   if not sharding.is_primary():  # process 0 writes the tokens of a multi-process run
     return state
 
@@ -168,7 +169,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
           "codebook_size": model_cfg.quantizer.codebook_size,
           "latent_dim": model_cfg.encoder.latent_dim, "quantizer": model_cfg.quantizer.kind,
           "checkpoint": {"workdir": str(workdir.resolve()), "step": int(state["step"]),
-                         "fingerprint": fp}}
+                         "fingerprint": fp,
+                         "params_sha256": checkpointing.tree_digest(state["params"])}}
   encoded = {name: _encode_jit(graphdef, state["params"], jnp.asarray(s.xi),
                                jnp.asarray(s.mask), config.encode_batch)
              for name, s in splits.items()}

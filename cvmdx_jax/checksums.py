@@ -1,0 +1,120 @@
+"""Content checksums of run files: one `checksums.json` manifest per directory.
+
+Every checksummed file `<dir>/<name>` has the entry `name -> sha256 hex digest` in
+`<dir>/checksums.json`. `write_bytes` records the digest of the new content around the
+atomic replacement of the file: first the entry lists the old and the new digest, then
+only the new one, so a crash at any point leaves a file whose digest is listed.
+`read_bytes` verifies the digest and raises `CorruptRunError` naming the file when the
+bytes differ (a flipped byte, a truncated copy, an edit by hand). A file without an entry
+was written before checksums existed (decision: such runs are accepted with a warning, see
+BUILD_NOTES.md "Integrity").
+
+Format helpers: `write_json` / `read_json`, `write_npz` / `read_npz`.
+"""
+
+import hashlib
+import io
+import json
+import os
+import warnings
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cvmdx_jax import atomic
+
+MANIFEST = "checksums.json"
+
+
+class CorruptRunError(ValueError):
+  """A run file's content differs from its recorded checksum, or cannot be parsed."""
+
+
+def sha256(data: bytes) -> str:
+  """The hex sha256 digest of `data`."""
+  return hashlib.sha256(data).hexdigest()
+
+
+def _read_manifest(directory: Path) -> dict[str, Any]:
+  path = directory / MANIFEST
+  if not path.is_file():
+    return {}
+  try:
+    manifest = json.loads(path.read_text())
+  except (OSError, ValueError) as e:
+    raise CorruptRunError(f"{path}: unreadable checksum manifest ({e})") from e
+  if not isinstance(manifest, dict):
+    raise CorruptRunError(f"{path}: checksum manifest is not a JSON object")
+  return manifest
+
+
+def _digests(entry: Any) -> list[str]:
+  return [entry] if isinstance(entry, str) else list(entry or [])
+
+
+def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+  atomic.write_json(directory / MANIFEST, manifest, indent=1, sort_keys=True)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  """Writes `data` atomically to `path` and records its digest; the directory must exist."""
+  path = Path(path)
+  digest, manifest = sha256(data), _read_manifest(path.parent)
+  manifest[path.name] = sorted({*_digests(manifest.get(path.name)), digest})
+  _write_manifest(path.parent, manifest)
+  atomic.write_bytes(path, data)
+  manifest[path.name] = digest
+  _write_manifest(path.parent, manifest)
+
+
+def read_bytes(path: str | os.PathLike) -> bytes:
+  """The bytes of `path`, verified against its recorded digest.
+
+  Raises:
+    FileNotFoundError: no such file.
+    CorruptRunError: the content differs from the recorded digest.
+  """
+  path = Path(path)
+  data = path.read_bytes()
+  entry = _read_manifest(path.parent).get(path.name)
+  if entry is None:
+    warnings.warn(f"{path}: no checksum recorded (written before checksums existed); its "
+                  "integrity cannot be verified; retrain the run to protect it", stacklevel=2)
+  elif sha256(data) not in _digests(entry):
+    raise CorruptRunError(
+        f"{path}: content does not match its sha256 in {path.parent / MANIFEST} (the file "
+        "is corrupt or was edited); restore it or rerun the command that wrote it")
+  return data
+
+
+def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
+  """`value` as JSON (indent 2 unless `kwargs` say otherwise), checksummed."""
+  write_bytes(path, (json.dumps(value, **{"indent": 2, **kwargs}) + "\n").encode())
+
+
+def read_json(path: str | os.PathLike) -> Any:
+  """A file of `write_json`, verified; CorruptRunError naming the file if unparseable."""
+  data = read_bytes(path)
+  try:
+    return json.loads(data)
+  except ValueError as e:
+    raise CorruptRunError(f"{path}: not valid JSON ({e})") from e
+
+
+def write_npz(path: str | os.PathLike, **arrays) -> None:
+  """Arrays as an uncompressed .npz (`np.savez`), checksummed."""
+  buffer = io.BytesIO()
+  np.savez(buffer, **arrays)
+  write_bytes(path, buffer.getvalue())
+
+
+def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+  """All arrays of a file of `write_npz`, verified; CorruptRunError if unreadable."""
+  data = read_bytes(path)
+  try:
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+      return {name: npz[name] for name in npz.files}
+  except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
+    raise CorruptRunError(f"{path}: unreadable .npz file ({e})") from e

@@ -1,0 +1,211 @@
+"""Integrity of run directories (issue 15): a refused resume leaves the directory
+byte-identical, corrupted files and checkpoints are refused naming the file, and a
+denoiser only pairs with the exact tokeniser checkpoint it was trained on."""
+
+import hashlib
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from configs import dataset as dataset_config
+from configs import diffusion as diffusion_config
+from configs import tokenizer as tokenizer_config
+from cvmdx_jax import checkpointing, checksums, locking, runs as runs_lib, sharding, tokens
+from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.checksums import CorruptRunError
+from cvmdx_jax.data import dataset
+from cvmdx_jax.predict import IncompatibleRunsError, Predictor
+from cvmdx_jax.train import diffusion, tokenizer
+
+
+def _tok_config(data_dir, arg="tiny"):
+  config = tokenizer_config.get_config(arg)
+  config.data_dir = str(data_dir)
+  return config
+
+
+def _diff_config(root, tokenizer_dir="tokenizer"):
+  config = diffusion_config.get_config("tiny")
+  config.data_dir, config.tokenizer_dir = str(root / "data"), str(root / tokenizer_dir)
+  return config
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+  """A tiny dataset, a tokeniser, a denoiser on it, and a second tokeniser (seed 1) of the
+  same fingerprint and step but other weights."""
+  root = tmp_path_factory.mktemp("integrity")
+  dataset.build(dataset_config.get_config("tiny"), root / "data")
+  tokenizer.train_and_evaluate(_tok_config(root / "data"), root / "tokenizer")
+  diffusion.train_and_evaluate(_diff_config(root), root / "diffusion")
+  other = _tok_config(root / "data")
+  other.seed = 1
+  tokenizer.train_and_evaluate(other, root / "tokenizer_seed1")
+  return root
+
+
+def _snapshot(directory: Path) -> dict[str, tuple[bytes, int]]:
+  """{relative path: (bytes, mtime_ns)} of every file except the lock (`locking`)."""
+  return {str(p.relative_to(directory)): (p.read_bytes(), p.stat().st_mtime_ns)
+          for p in sorted(directory.rglob("*"))
+          if p.is_file() and not p.name.startswith(locking.LOCK_NAME)}
+
+
+def _flip_byte(path: Path, offset: int) -> None:
+  data = bytearray(path.read_bytes())
+  data[offset % len(data)] ^= 0x01
+  path.write_bytes(bytes(data))
+
+
+def test_refused_tokenizer_resume_leaves_the_directory_unchanged(runs):
+  workdir = runs / "tokenizer"
+  before = _snapshot(workdir)
+  assert {"tokenizer.json", "checksums.json", "metrics.jsonl", "tokens/train.npz",
+          "tokens/gaussians.npz"} <= set(before)
+  other_q = _tok_config(runs / "data", "tiny,q=5")
+  other_size = _tok_config(runs / "data")
+  other_size.model.encoder.latent_dim = 6
+  other_batch = _tok_config(runs / "data")  # same fingerprint, other loop settings
+  other_batch.train.batch_size *= 2
+  for config, differing in ((other_q, "codebook_size"), (other_size, "latent_dim"),
+                            (other_batch, "batch_size")):
+    with pytest.raises(CheckpointMismatchError, match=differing):
+      tokenizer.train_and_evaluate(config, workdir)
+    assert _snapshot(workdir) == before, differing
+  splits = {s: dataset.load_split(runs / "data", s) for s in ("train", "val")}
+  splits["train"] = splits["train"].take(np.arange(len(splits["train"]) - 1))  # other data
+  with pytest.raises(CheckpointMismatchError, match="dataset_id"):
+    tokenizer.train_and_evaluate(_tok_config(runs / "data"), workdir, splits=splits)
+  assert _snapshot(workdir) == before
+
+
+def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs):
+  workdir = runs / "diffusion"
+  before = _snapshot(workdir)
+  assert {"config.json", "model.json", "checksums.json", "metrics.jsonl"} <= set(before)
+  other_scale = _diff_config(runs)
+  other_scale.diffusion.control_scale = (4.0, 0.7 * 2)
+  other_size = _diff_config(runs)
+  other_size.model.base_channels *= 2
+  other_tokenizer = _diff_config(runs, "tokenizer_seed1")
+  for config, differing in ((other_scale, "control_scale"), (other_size, "other model size"),
+                            (other_tokenizer, "params_sha256")):
+    with pytest.raises(CheckpointMismatchError, match=differing):
+      diffusion.train_and_evaluate(config, workdir)
+    assert _snapshot(workdir) == before, differing
+  loaded = runs_lib.load_denoiser(workdir)  # still the run it was
+  assert tuple(loaded.config.diffusion.control_scale) == (4.0, 0.7)
+
+
+def test_finished_run_rerun_with_its_config_still_verifies(runs, tmp_path):
+  workdir = tmp_path / "diffusion"
+  shutil.copytree(runs / "diffusion", workdir)
+  diffusion.train_and_evaluate(_diff_config(runs), workdir)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # every file and checkpoint carries its checksum
+    Predictor.load(runs / "tokenizer", workdir)
+
+
+@pytest.mark.parametrize("run,name", [
+    ("tokenizer", "tokenizer.json"), ("tokenizer", "tokens/gaussians.npz"),
+    ("diffusion", "config.json"), ("diffusion", "model.json")])
+def test_a_flipped_byte_in_a_run_file_is_refused_naming_it(runs, tmp_path, run, name):
+  for offset in (5, -40):  # in the first field and near the end of the file
+    shutil.rmtree(tmp_path / run, ignore_errors=True)
+    shutil.copytree(runs / run, tmp_path / run)
+    _flip_byte(tmp_path / run / name, offset)
+    tok_dir = tmp_path / run if run == "tokenizer" else runs / "tokenizer"
+    diff_dir = tmp_path / run if run == "diffusion" else runs / "diffusion"
+    with pytest.raises(CorruptRunError, match=name.split("/")[-1]):
+      Predictor.load(tok_dir, diff_dir)
+
+
+def test_a_flipped_byte_in_a_tokens_file_is_refused_naming_it(runs, tmp_path):
+  path = tmp_path / "train.npz"
+  shutil.copy(tokens.tokens_path(runs / "tokenizer", "train"), path)
+  shutil.copy(runs / "tokenizer" / "tokens" / checksums.MANIFEST, tmp_path)
+  tokens.load_tokens(path)  # intact copy with its manifest: verifies
+  _flip_byte(path, len(path.read_bytes()) // 2)
+  with pytest.raises(CorruptRunError, match="train.npz"):
+    tokens.load_tokens(path)
+
+
+@pytest.mark.parametrize("run", ["tokenizer", "diffusion"])
+def test_a_flipped_byte_anywhere_in_a_checkpoint_is_refused_naming_the_file(runs, tmp_path, run):
+  load = runs_lib.load_tokenizer if run == "tokenizer" else runs_lib.load_denoiser
+  step_dir = next((runs / run / "checkpoints").iterdir())
+  files = sorted(p.relative_to(runs / run) for p in step_dir.rglob("*")
+                 if p.is_file() and p.name != "files.sha256.json")
+  assert any(f.parent.name == "d" for f in files)  # orbax's array data are among them
+  for i, name in enumerate(files):
+    shutil.rmtree(tmp_path / run, ignore_errors=True)
+    shutil.copytree(runs / run, tmp_path / run)
+    _flip_byte(tmp_path / run / name, (i + 1) * 7919)  # a different offset per file
+    with pytest.raises(CheckpointMismatchError, match=f"corrupt.*{name.name}"):
+      load(tmp_path / run)
+
+
+def test_checkpoint_leaf_checksums_name_the_corrupted_leaf(tmp_path):
+  state = {"a": np.arange(6, dtype=np.float32), "b": {"c": np.ones((2, 3), np.int32)}}
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    ckpts.save(1, state, {"run": 1})
+  meta_path = tmp_path / "1" / "_CHECKPOINT_METADATA"
+  meta = json.loads(meta_path.read_text())
+  # independent reference: hashlib over the saved leaves' bytes
+  assert meta["custom_metadata"]["sha256"] == {
+      "a": hashlib.sha256(state["a"].tobytes()).hexdigest(),
+      "b/c": hashlib.sha256(state["b"]["c"].tobytes()).hexdigest()}
+  rep = sharding.replicated(sharding.data_mesh())
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), state)
+  restored, saved = checkpointing.load_latest(tmp_path, abstract)
+  assert saved == {"run": 1} and np.array_equal(restored["b"]["c"], state["b"]["c"])
+  # bytes orbax still decodes but that differ from the leaf's digest (file digests gone)
+  meta["custom_metadata"]["sha256"]["b/c"] = hashlib.sha256(b"other").hexdigest()
+  meta_path.write_text(json.dumps(meta))
+  (tmp_path / "1" / "files.sha256.json").unlink()
+  with pytest.warns(UserWarning, match="files.sha256.json"):
+    with pytest.raises(CheckpointMismatchError, match="corrupt.*'b/c'"):
+      checkpointing.load_latest(tmp_path, abstract)
+
+
+def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(runs):
+  a = runs_lib.load_tokenizer(runs / "tokenizer")
+  b = runs_lib.load_tokenizer(runs / "tokenizer_seed1")
+  assert a.fingerprint == b.fingerprint and a.checkpoint.step == b.checkpoint.step
+  with pytest.raises(IncompatibleRunsError, match="params_sha256"):
+    Predictor.load(runs / "tokenizer_seed1", runs / "diffusion")
+
+
+def test_denoiser_refuses_its_tokeniser_trained_further(runs, tmp_path):
+  shutil.copytree(runs / "tokenizer", tmp_path / "tokenizer")
+  config = _tok_config(runs / "data")
+  config.train.num_epochs += 1
+  tokenizer.train_and_evaluate(config, tmp_path / "tokenizer")
+  with pytest.raises(IncompatibleRunsError, match="step"):
+    Predictor.load(tmp_path / "tokenizer", runs / "diffusion")
+
+
+def test_runs_without_checksums_load_with_a_warning(runs, tmp_path):
+  for run in ("tokenizer", "diffusion"):
+    shutil.copytree(runs / run, tmp_path / run)
+    for manifest in (tmp_path / run).rglob(checksums.MANIFEST):
+      manifest.unlink()
+  with pytest.warns(UserWarning, match="no checksum recorded"):
+    Predictor.load(tmp_path / "tokenizer", tmp_path / "diffusion")
+
+
+def test_checksummed_writes_leave_a_verifiable_manifest(tmp_path):
+  path = tmp_path / "x.json"
+  checksums.write_json(path, {"a": 1})
+  checksums.write_json(path, {"a": 2})
+  manifest = json.loads((tmp_path / checksums.MANIFEST).read_text())
+  assert manifest == {"x.json": hashlib.sha256(path.read_bytes()).hexdigest()}
+  assert checksums.read_json(path) == {"a": 2}
+  path.write_text('{"a": 3}\n')
+  with pytest.raises(CorruptRunError, match="x.json"):
+    checksums.read_json(path)
