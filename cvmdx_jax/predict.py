@@ -85,7 +85,8 @@ class Predictor:
   On construction the tokeniser's and the denoiser's arrays are replicated over the
   devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
   `delta_limit`: the largest delta over the tokeniser's train split (`load` reads it from
-  `<tokenizer_dir>/tokens/train.npz`); scenarios above it are out of distribution.
+  `<tokenizer_dir>/tokens/train.npz`); scenarios above it are out of distribution (the
+  default, inf, flags none).
   """
 
   tokenizer: runs.TokenizerBundle

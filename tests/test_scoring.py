@@ -143,4 +143,4 @@ def test_markdown_tables_show_the_added_metrics():
   mean_row = next(line for line in text.splitlines() if line.startswith("| cVMDx mean"))
   assert mean_row.split("|")[4].strip() == "1.00"  # final lon of a 1 m shift
   ood_row = next(line for line in text.splitlines() if line.startswith("| all |"))
-  assert ood_row.split("|")[3].strip() == "0.33"
+  assert ood_row.split("|")[3].strip() == "33.3%"

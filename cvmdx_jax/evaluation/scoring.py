@@ -177,7 +177,7 @@ def summarise(errors: dict, labels) -> dict:
 def markdown_tables(results: dict) -> str:
   """Three markdown tables: overall (paper Table II layout plus the added metrics), per
   class (Table I) and cVMDx's scenario uncertainty per subset."""
-  fmt = lambda x: "-" if x is None else "n/a" if x != x else f"{x:.2f}"
+  fmt = lambda x, spec="{:.2f}": "-" if x is None else "n/a" if x != x else spec.format(x)
   lines = ["| model | ADE [m] | FDE@5s [m] | final lon [m] | final lat [m] | miss rate (2 m) "
            "| hit rate (1.75 m) | Brier-minFDE [m] | target lane, p >= 0.2 (lc) | scenarios "
            "| paper highD ADE / FDE |", "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -196,14 +196,14 @@ def markdown_tables(results: dict) -> str:
                        for s in constants.CLASS_NAMES)
     lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} |")
   if "cvmdx_mean" in results:
-    lines += ["", "| cVMDx scenario uncertainty | scenarios | out of distribution (share) "
+    lines += ["", "| cVMDx scenario uncertainty | scenarios | out of distribution "
               "| Spearman rho(delta, mean-of-N ADE) | p-value |", "|---|---|---|---|---|"]
     for subset in SUBSETS:
       r = results["cvmdx_mean"][subset]
-      p = r.get("delta_ade_spearman_p")
-      lines.append(f"| {subset} | {r['num_scenarios']} | {fmt(r.get('out_of_distribution'))} | "
+      lines.append(f"| {subset} | {r['num_scenarios']} | "
+                   f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
                    f"{fmt(r.get('delta_ade_spearman'))} | "
-                   f"{'-' if p is None else 'n/a' if p != p else f'{p:.2g}'} |")
+                   f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |")
   return "\n".join(lines) + "\n"
 
 
