@@ -40,10 +40,20 @@ def min_fde_k(hyps, gt, valid):
   return jnp.min(_per_hypothesis(fde, hyps, gt, valid), axis=-1)
 
 
+def take_hypothesis(hyps, idx):
+  """Hypothesis `idx` of each set: (..., K, T, 2), int (...,) -> (..., T, 2)."""
+  return jnp.take_along_axis(hyps, idx[..., None, None, None], axis=-3)[..., 0, :, :]
+
+
 def most_likely(hyps, probs):
   """The hypothesis with the highest probability: (..., K, T, 2), (..., K) -> (..., T, 2)."""
-  idx = jnp.argmax(probs, axis=-1)
-  return jnp.take_along_axis(hyps, idx[..., None, None, None], axis=-3)[..., 0, :, :]
+  return take_hypothesis(hyps, jnp.argmax(probs, axis=-1))
+
+
+def closest_final(hyps, gt, valid):
+  """Index of the valid hypothesis with the smallest final error (the one minFDE_K
+  picks): (..., K, T, 2), (..., T, 2), (..., K) -> int (...,)."""
+  return jnp.argmin(_per_hypothesis(fde, hyps, gt, valid), axis=-1)
 
 
 def miss(pred_final_error):
@@ -67,7 +77,7 @@ def brier_min_fde(hyps, probs, gt, valid):
   hypothesis that attains minFDE_K. hyps (..., K, T, 2), probs and valid (..., K),
   gt (..., T, 2) -> (...,)."""
   err = _per_hypothesis(fde, hyps, gt, valid)
-  best = jnp.argmin(err, axis=-1)[..., None]
+  best = closest_final(hyps, gt, valid)[..., None]
   p = jnp.take_along_axis(probs, best, axis=-1)[..., 0]
   return jnp.take_along_axis(err, best, axis=-1)[..., 0] + (1.0 - p) ** 2
 

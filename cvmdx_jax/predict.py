@@ -4,6 +4,10 @@
     out = predictor(scenarios, seed=0)   # any reader's `Scenarios`
     out.mean, out.hypotheses.means, out.hypotheses.probs
 
+Scenarios whose uncertainty delta exceeds the largest delta of the tokeniser's training
+split are flagged (`PredictorOutput.out_of_distribution`) and reported with an
+`OutOfDistributionWarning`: their prediction extrapolates beyond the training data.
+
 One jitted call per chunk goes from observed scenarios to tokens, uncertainty,
 guided DDIM samples, VMM trajectories and GMM/BIC hypotheses; it is the only jit on the
 path (the functions it calls are plain, jittable code) and compiles once per chunk
@@ -14,6 +18,7 @@ replicated once, when the `Predictor` is made. Scenario i always draws its noise
 
 import dataclasses
 import functools
+import math
 import warnings
 
 import jax
@@ -21,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import checkpointing, ego_motion, runs, sharding
+from cvmdx_jax import checkpointing, ego_motion, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
@@ -29,6 +34,10 @@ from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
 
 class IncompatibleRunsError(ValueError):
   """The tokeniser and the denoiser were not trained together."""
+
+
+class OutOfDistributionWarning(UserWarning):
+  """Some scenarios lie beyond the tokeniser's training range (delta above its maximum)."""
 
 
 INPUT_FIELDS = ("xi", "mask", "v0", "psi0")  # the Scenarios fields a prediction reads
@@ -42,11 +51,13 @@ class PredictorOutput:
     prediction: `Prediction` with controls / trajectories (M, N, 125, 2), mean
       (M, 125, 2) and hypotheses (means (M, C_max, 125, 2), probs (M, C_max)).
     q: (M,) scenario tokens; delta: (M,) Mahalanobis uncertainty.
+    out_of_distribution: (M,) bool, delta above `Predictor.delta_limit` (or not finite).
   """
 
   prediction: Prediction
   q: np.ndarray
   delta: np.ndarray
+  out_of_distribution: np.ndarray
 
   @property
   def mean(self):
@@ -73,12 +84,16 @@ class Predictor:
 
   On construction the tokeniser's and the denoiser's arrays are replicated over the
   devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
+  `delta_limit`: the largest delta over the tokeniser's train split (`load` reads it from
+  `<tokenizer_dir>/tokens/train.npz`); scenarios above it are out of distribution (the
+  default, inf, flags none).
   """
 
   tokenizer: runs.TokenizerBundle
   denoiser: runs.Denoiser
   sampling: SamplingConfig
   chunk_size: int = 256
+  delta_limit: float = math.inf
 
   def __post_init__(self):
     mesh = sharding.data_mesh()
@@ -119,7 +134,9 @@ class Predictor:
     sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale,
                                    conditioning=trained.conditioning,
                                    residual_decay_s=trained.residual_decay_s)
-    return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size)
+    train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
+    return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size,
+               delta_limit=float(np.max(train.delta)))
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
     """Predicts every scenario; see the module docstring."""
@@ -145,4 +162,10 @@ class Predictor:
       n = int(weight.sum())
       outputs.append(jax.tree.map(lambda a: np.asarray(a)[:n], out))
     pred, q, delta = jax.tree.map(lambda *xs: np.concatenate(xs), *outputs)
-    return PredictorOutput(prediction=pred, q=q, delta=delta)
+    ood = ~(delta <= self.delta_limit)
+    if ood.any():
+      warnings.warn(f"{int(ood.sum())} of {m} scenarios have an uncertainty delta beyond the "
+                    f"tokeniser's training range (max {self.delta_limit:.3g}); their "
+                    f"predictions extrapolate: scenarios {np.flatnonzero(ood)[:20].tolist()}"
+                    f"{' ...' if ood.sum() > 20 else ''}", OutOfDistributionWarning, stacklevel=2)
+    return PredictorOutput(prediction=pred, q=q, delta=delta, out_of_distribution=ood)

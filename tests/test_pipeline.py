@@ -1,6 +1,7 @@
 """Smoke test of the whole pipeline on tiny configs: SUMO data -> tokeniser ->
 diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -22,7 +23,7 @@ from cvmdx_jax import runs as runs_lib
 from cvmdx_jax.evaluation import report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.predict import IncompatibleRunsError, Predictor
+from cvmdx_jax.predict import IncompatibleRunsError, OutOfDistributionWarning, Predictor
 from cvmdx_jax.train import diffusion, loop, tokenizer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,14 +53,92 @@ def test_report_has_every_method_subset_and_figure(runs):
     assert set(saved[method]) == set(scoring.SUBSETS)
     for subset in scoring.SUBSETS:
       row = saved[method][subset]
-      assert {"ade", "fde", "miss_rate", "hit_rate", "num_scenarios"} <= set(row)
+      assert {"ade", "fde", "final_lon", "final_lat", "miss_rate", "hit_rate",
+              "num_scenarios"} <= set(row)
       assert np.isfinite(row["ade"]) and np.isfinite(row["fde"]) and min(row["ade"], row["fde"]) >= 0
+      # per scenario max(|dx|, |dy|) <= fde <= |dx| + |dy|; averaged, hypot(mean |dx|,
+      # mean |dy|) <= mean fde (Minkowski)
+      assert max(row["final_lon"], row["final_lat"]) <= row["fde"] + 1e-5
+      assert np.hypot(row["final_lon"], row["final_lat"]) <= row["fde"] + 1e-5
+      assert row["fde"] <= row["final_lon"] + row["final_lat"] + 1e-5
+  best = saved["cvmdx_best_of_k"]
+  for subset in scoring.SUBSETS:
+    assert best[subset]["fde"] <= best[subset]["brier_min_fde"] <= best[subset]["fde"] + 1
+    assert ("target_lane_hit" in best[subset]) == (subset != "kl")
+  assert 0 <= best["all"]["target_lane_hit"] <= 1
+  mean = saved["cvmdx_mean"]
+  assert 0 <= mean["all"]["out_of_distribution"] <= 1
+  assert -1 <= mean["all"]["delta_ade_spearman"] <= 1
+  assert saved["_meta"]["out_of_distribution"]["share"] == mean["all"]["out_of_distribution"]
   assert saved["cv"]["all"]["num_scenarios"] == 30
   assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
   assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
   for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
     assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
-  assert "| Constant velocity |" in (runs / "eval" / "results.md").read_text()
+  table = (runs / "eval" / "results.md").read_text()
+  assert "| Constant velocity |" in table and "Brier-minFDE" in table
+  assert "out of distribution" in table and "Spearman" in table
+
+
+def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatch, capsys):
+  out = tmp_path / "demo"
+  results = report.run_test_and_ood(tokenizer_dir=runs / "tokenizer",
+                                    diffusion_dir=runs / "diffusion", data_dir=runs / "data",
+                                    workdir=out, ddpm_scenarios=0, ood_ddpm_scenarios=0,
+                                    max_scenarios=6)
+  assert set(results) == {"test", "test_ood"}
+  test = json.loads((out / "metrics.json").read_text())
+  ood = json.loads((out / "metrics_test_ood.json").read_text())
+  assert (test["_meta"]["split"], ood["_meta"]["split"]) == ("test", "test_ood")
+  schema = lambda m: {k: {s: set(r) for s, r in v.items()} for k, v in m.items() if k != "_meta"}
+  assert schema(test) == schema(ood)
+  assert test["cv"]["all"]["num_scenarios"] == ood["cv"]["all"]["num_scenarios"] == 6
+  assert ood["_meta"]["dataset_id"] == test["_meta"]["dataset_id"]
+  assert 0 <= ood["cvmdx_mean"]["all"]["out_of_distribution"] <= 1
+  assert "| Constant velocity |" in (out / "results_test_ood.md").read_text()
+  assert (out / "kl_vs_usage_test_ood.png").is_file()
+  # a dataset without test_ood (highD, cvmd_mat): the test report only, and a note
+  monkeypatch.setattr(report.dataset_lib, "split_names", lambda _: ["train", "val", "test"])
+  calls = []
+  monkeypatch.setattr(report, "run", lambda **kw: calls.append(kw["split"]))
+  assert list(report.run_test_and_ood(tokenizer_dir=None, diffusion_dir=None, data_dir="d",
+                                      workdir=out, ddpm_scenarios=0,
+                                      ood_ddpm_scenarios=0)) == ["test"]
+  assert calls == ["test"] and "no test_ood split" in capsys.readouterr().out
+
+
+def test_non_finite_predictions_stop_the_evaluation(runs, tmp_path, monkeypatch):
+  predict = Predictor.__call__
+
+  def nan_in_scenario_1(self, scenarios, seed=0):
+    out = predict(self, scenarios, seed)
+    traj = out.prediction.trajectories.copy()
+    traj[1, 0, 5, 0] = np.nan
+    return dataclasses.replace(out, prediction=dataclasses.replace(out.prediction,
+                                                                  trajectories=traj))
+
+  monkeypatch.setattr(Predictor, "__call__", nan_in_scenario_1)
+  with pytest.raises(scoring.NonFinitePredictionError,
+                     match=r"non-finite predictions for 1 of 6 scenarios: #1 \(recording"):
+    report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+               data_dir=runs / "data", workdir=tmp_path / "eval", max_scenarios=6,
+               ddpm_scenarios=0)
+  assert not (tmp_path / "eval").exists()
+
+
+def test_predictor_flags_scenarios_beyond_the_training_range(runs):
+  predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
+  with np.load(runs / "tokenizer" / "tokens" / "train.npz") as train:
+    assert predictor.delta_limit == pytest.approx(float(train["delta"].max()))
+  scenarios = dataset.load_split(runs / "data", "test").take(np.arange(6))
+  xi = scenarios.xi.copy()
+  xi[2] *= 1e4  # positions and velocities far outside any training scenario
+  far = scenarios.__class__(**{**scenarios.as_dict(), "xi": xi})
+  with pytest.warns(OutOfDistributionWarning, match=r"training range .*scenarios \[.*2"):
+    out = predictor(far, seed=0)
+  assert out.out_of_distribution.dtype == bool and out.out_of_distribution.shape == (6,)
+  assert out.out_of_distribution[2] and out.delta[2] > predictor.delta_limit
+  np.testing.assert_array_equal(out.out_of_distribution, out.delta > predictor.delta_limit)
 
 
 def test_predictor_is_deterministic_and_chunk_independent(runs):

@@ -1,10 +1,12 @@
 """One evaluation run: predictions on a split, baselines, metrics.json, tables, figures.
 
-Writes into `workdir`: `metrics.json` ({method: {subset: {metric: value}}}, methods
-`scoring.METHODS`, subsets all / kl / lcr / lcl, metrics ade, fde, miss_rate,
-hit_rate, num_scenarios), `results.md` (the tables), `predictions_<class>.png`
-(Fig. 1 style) and `kl_vs_usage.png` (Fig. 3 style). Every input is checked
-before anything is written, and each file is written atomically.
+Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}}},
+methods `scoring.METHODS`, subsets all / kl / lcr / lcl, metrics in `scoring`'s
+docstring, plus `_meta`), `results<suffix>.md` (the tables),
+`predictions_<class><suffix>.png` (Fig. 1 style) and `kl_vs_usage<suffix>.png` (Fig. 3
+style). Every input is checked before anything is written, non-finite predictions stop
+the run (`scoring.NonFinitePredictionError`) before anything is written, and each file
+is written atomically.
 """
 
 import dataclasses
@@ -24,7 +26,7 @@ from cvmdx_jax.predict import Predictor
 @locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
-        figures_per_class: int = 3, sampling=None) -> dict:
+        figures_per_class: int = 3, sampling=None, suffix: str = "") -> dict:
   """Evaluates a trained cVMDx on `split` of the dataset in `data_dir`.
 
   Args:
@@ -38,6 +40,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
       class-balanced subset of the evaluated ones (0 = skip it).
     figures_per_class: scenarios drawn per class in the prediction figures.
     sampling: a `SamplingConfig` overriding the diffusion run's.
+    suffix: appended to every file name (`metrics<suffix>.json`, ...), so that several
+      splits can be reported into one directory.
 
   Returns:
     The metrics dict written to metrics.json.
@@ -48,38 +52,74 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   workdir = Path(workdir)
-  workdir.mkdir(parents=True, exist_ok=True)
 
   out = predictor(scenarios, seed=seed)
+  scoring.check_finite(out.prediction, scenarios, f"cVMDx on split {split}")
   gt = jnp.asarray(scenarios.future)
-  errors = {**scoring.cvmdx_errors(out.prediction, gt),
+  errors = {**scoring.cvmdx_errors(out, gt, scenarios.label),
             **scoring.baseline_errors(scenarios)}
   results = scoring.summarise(errors, scenarios.label)
+  correlation = scoring.delta_rank_correlation(out.delta, errors["cvmdx_mean"]["ade"],
+                                               scenarios.label)
+  for subset, row in correlation.items():
+    results["cvmdx_mean"][subset].update(row)
   if ddpm_scenarios:
     idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
     single = dataclasses.replace(predictor.sampling, sampler="ddpm", num_samples=1,
                                  hypotheses=HypothesisConfig(c_max=1, pca_dim=1))
     ddpm = dataclasses.replace(predictor, sampling=single)(sub, seed=seed)
+    scoring.check_finite(ddpm.prediction, sub, f"single DDPM sample on split {split}")
     results.update(scoring.summarise(
         {"ddpm_single": scoring.single_trajectory_errors(ddpm.mean, jnp.asarray(sub.future))},
         sub.label))
+  workdir.mkdir(parents=True, exist_ok=True)
 
   q_count = predictor.tokenizer.config.quantizer.codebook_size
   usage = np.bincount(usage_tokens.q, minlength=q_count)
   token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
-  fit = figures.plot_kl_vs_usage(workdir / "kl_vs_usage.png", token_kl,
+  fit = figures.plot_kl_vs_usage(workdir / f"kl_vs_usage{suffix}.png", token_kl,
                                  f"Q = {q_count}, split {split}")
   for c, name in enumerate(constants.CLASS_NAMES):
     idx = np.flatnonzero(scenarios.label == c)[:figures_per_class]
     if len(idx):
-      figures.plot_predictions(workdir / f"predictions_{name}.png", scenarios, out, idx)
+      figures.plot_predictions(workdir / f"predictions_{name}{suffix}.png", scenarios, out, idx)
 
   meta = {"split": split, "num_scenarios": len(scenarios), "seed": seed,
           "sampling": dataclasses.asdict(predictor.sampling),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
-          "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q)))}
-  checksums.write_json(workdir / "metrics.json", {**results, "_meta": meta})
-  atomic.write_text(workdir / "results.md", scoring.markdown_tables(results))
+          "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q))),
+          "out_of_distribution": {
+              "rule": "delta > delta_limit, the largest delta over the tokeniser's train split",
+              "delta_limit": predictor.delta_limit,
+              "count": int(out.out_of_distribution.sum()),
+              "share": float(out.out_of_distribution.mean())}}
+  checksums.write_json(workdir / f"metrics{suffix}.json", {**results, "_meta": meta})
+  atomic.write_text(workdir / f"results{suffix}.md", scoring.markdown_tables(results))
   return results
+
+
+def split_suffix(split: str) -> str:
+  """The file-name suffix of `split` in `run_test_and_ood`'s directory: "" for test
+  (metrics.json), "_<split>" otherwise (metrics_test_ood.json)."""
+  return "" if split == "test" else f"_{split}"
+
+
+def run_test_and_ood(*, tokenizer_dir, diffusion_dir, data_dir, workdir, ddpm_scenarios: int,
+                     ood_ddpm_scenarios: int, seed: int = 0, max_scenarios: int = 0) -> dict:
+  """Reports on test (metrics.json, results.md, ...) and, where the dataset has the split,
+  on test_ood (metrics_test_ood.json, results_test_ood.md, ...) into one `workdir`, in
+  the same schema; without test_ood a note is printed. Arguments as in `run`, with
+  `ood_ddpm_scenarios` the DDPM baseline's subset on test_ood. Returns {split: metrics}."""
+  splits = {"test": ddpm_scenarios}
+  if "test_ood" in dataset_lib.split_names(data_dir):
+    splits["test_ood"] = ood_ddpm_scenarios
+  else:
+    print(f"note: {data_dir} has no test_ood split (the highD and cvmd_mat sources have "
+          "none); only the test split is evaluated", flush=True)
+  return {split: run(tokenizer_dir=tokenizer_dir, diffusion_dir=diffusion_dir,
+                     data_dir=data_dir, workdir=workdir, split=split, seed=seed,
+                     max_scenarios=max_scenarios, ddpm_scenarios=ddpm,
+                     suffix=split_suffix(split))
+          for split, ddpm in splits.items()}

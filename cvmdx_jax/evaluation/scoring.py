@@ -2,15 +2,26 @@
 constant velocity, constant acceleration + yaw rate and a single DDPM sample (cVMD),
 overall and per maneuver class, as nested dicts and markdown tables.
 
-Metrics per method and subset: `ade`, `fde` (m), `miss_rate` (final error > 2 m;
-for best-of-K: the best hypothesis), `hit_rate` (final lateral error < 1.75 m; for
-best-of-K: any hypothesis), `num_scenarios`.
+Metrics per method and subset: `ade`, `fde` (m), `final_lon`, `final_lat` (|dx|, |dy|
+at 5 s, m), `miss_rate` (final error > 2 m), `hit_rate` (final lateral error < 1.75 m),
+`num_scenarios`. Best of K: ade / fde = minADE_K / minFDE_K, final_lon / final_lat and
+miss_rate of the hypothesis with the smallest final error, hit_rate over any hypothesis,
+plus `brier_min_fde` (Argoverse 2: minFDE_K + (1 - p)^2 of that hypothesis) and
+`target_lane_hit` (lane changes only: a hypothesis with p >= 0.2 ends within 1.75 m of
+the true final lateral position; absent from the kl subset). The mean of N also carries
+`out_of_distribution` (share of scenarios with delta beyond the tokeniser's training
+range) and `delta_ade_spearman` / `delta_ade_spearman_p` (Spearman's rank correlation of
+delta with the mean trajectory's ADE and its two-sided p-value).
+
+Metrics are never computed over NaN: `check_finite` refuses non-finite predictions and
+`summarise` non-finite per-scenario values, with `NonFinitePredictionError`.
 """
 
 import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from cvmdx_jax import constants, metrics
 from cvmdx_jax.evaluation import baselines
@@ -22,36 +33,99 @@ METHOD_TITLES = {
     "cvmdx_best_of_k": "cVMDx best of K (minADE_K / minFDE_K)", "cv": "Constant velocity",
     "ca": "Constant acceleration + yaw rate", "ddpm_single": "cVMD-style single DDPM sample",
 }
+TARGET_LANE_MIN_PROB = 0.2  # a hypothesis counts for target_lane_hit from this probability
 # Paper, Table II (highD): ADE / FDE@5s in metres.
 PAPER_HIGHD = {"cvmdx_mean": (1.37, 3.84), "cvmdx_most_likely": (1.43, 4.00),
                "cvmdx_best_of_k": (1.33, 3.68), "ddpm_single": (1.79, 3.76)}
 
 
+class NonFinitePredictionError(ValueError):
+  """A prediction (or a metric of it) holds NaN or inf; no metric is computed over it."""
+
+
+def _name_scenarios(scenarios, index, limit: int = 10) -> str:
+  """'#i (recording r, track t, frame f), ...' for the first `limit` of `index`."""
+  names = [f"#{i} (recording {int(scenarios.recording_id[i])}, track "
+           f"{int(scenarios.track_id[i])}, frame {int(scenarios.frame[i])})"
+           for i in index[:limit]]
+  return ", ".join(names) + (f" and {len(index) - limit} more" if len(index) > limit else "")
+
+
+def check_finite(prediction, scenarios, what: str) -> None:
+  """Refuses a `Prediction` for `scenarios` whose arrays a metric reads (controls,
+  trajectories, mean, hypothesis means and probs) hold NaN or inf anywhere.
+
+  Raises:
+    NonFinitePredictionError: naming `what` and the scenarios (position in `scenarios`,
+      recording, track, frame).
+  """
+  hyp = prediction.hypotheses
+  arrays = (prediction.controls, prediction.trajectories, prediction.mean, hyp.means, hyp.probs)
+  m = len(scenarios)
+  bad = np.zeros(m, bool)
+  for a in arrays:
+    bad |= ~np.isfinite(np.asarray(a).reshape(m, -1)).all(axis=1)
+  if bad.any():
+    raise NonFinitePredictionError(
+        f"{what}: non-finite predictions for {int(bad.sum())} of {m} scenarios: "
+        f"{_name_scenarios(scenarios, np.flatnonzero(bad))}")
+
+
 def single_trajectory_errors(pred, gt) -> dict:
   """Per-scenario errors of one trajectory per scenario: (M, T, 2) each -> dict of (M,)."""
   final = metrics.fde(pred, gt)
-  return {"ade": metrics.ade(pred, gt), "fde": final, "miss_rate": metrics.miss(final),
-          "hit_rate": metrics.hit(pred, gt)}
+  lon, lat = metrics.final_lon_lat(pred, gt)
+  return {"ade": metrics.ade(pred, gt), "fde": final, "final_lon": lon, "final_lat": lat,
+          "miss_rate": metrics.miss(final), "hit_rate": metrics.hit(pred, gt)}
 
 
-def best_of_k_errors(hyps, probs, gt) -> dict:
-  """Per-scenario best-of-K errors over the used hypothesis slots."""
+def best_of_k_errors(hyps, probs, gt, labels) -> dict:
+  """Per-scenario best-of-K errors over the used hypothesis slots.
+
+  hyps (M, K, T, 2), probs (M, K) (0 = unused slot), gt (M, T, 2), labels (M,).
+  `target_lane_hit` is a masked array, masked on keep-lane scenarios.
+  """
   valid = probs > 0
   final = metrics.min_fde_k(hyps, gt, valid)
+  lon, lat = metrics.final_lon_lat(
+      metrics.take_hypothesis(hyps, metrics.closest_final(hyps, gt, valid)), gt)
   hits = jnp.where(valid, metrics.hit(hyps, gt[:, None]), 0.0)
-  return {"ade": metrics.min_ade_k(hyps, gt, valid), "fde": final,
-          "miss_rate": metrics.miss(final), "hit_rate": jnp.max(hits, axis=-1)}
+  lane = metrics.target_lane_hit(hyps, probs, gt, min_prob=TARGET_LANE_MIN_PROB)
+  return {"ade": metrics.min_ade_k(hyps, gt, valid), "fde": final, "final_lon": lon,
+          "final_lat": lat, "miss_rate": metrics.miss(final), "hit_rate": jnp.max(hits, axis=-1),
+          "brier_min_fde": metrics.brier_min_fde(hyps, probs, gt, valid),
+          "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0)}
 
 
-def cvmdx_errors(prediction, gt) -> dict:
-  """The three cVMDx read-outs of a `Prediction` -> {method: per-scenario errors}."""
-  hyp = prediction.hypotheses
+def cvmdx_errors(output, gt, labels) -> dict:
+  """The three cVMDx read-outs of a `PredictorOutput` -> {method: per-scenario errors};
+  the mean's also hold `out_of_distribution` (1.0 where flagged)."""
+  prediction, hyp = output.prediction, output.hypotheses
+  mean = single_trajectory_errors(prediction.mean, gt)
   return {
-      "cvmdx_mean": single_trajectory_errors(prediction.mean, gt),
+      "cvmdx_mean": {**mean, "out_of_distribution": np.asarray(output.out_of_distribution,
+                                                               np.float64)},
       "cvmdx_most_likely": single_trajectory_errors(
           metrics.most_likely(hyp.means, hyp.probs), gt),
-      "cvmdx_best_of_k": best_of_k_errors(hyp.means, hyp.probs, gt),
+      "cvmdx_best_of_k": best_of_k_errors(hyp.means, hyp.probs, gt, labels),
   }
+
+
+def delta_rank_correlation(delta, ade, labels) -> dict:
+  """Spearman's rank correlation of delta with an ADE, per subset.
+
+  delta, ade, labels: (M,). Returns {subset: {"delta_ade_spearman": rho,
+  "delta_ade_spearman_p": two-sided p}}; NaN where a subset has < 3 scenarios or a
+  constant delta or ADE.
+  """
+  delta, ade, labels = (np.asarray(a) for a in (delta, ade, labels))
+  out = {}
+  for subset, sel in _subset_masks(labels):
+    rho = p = float("nan")
+    if sel.sum() >= 3 and np.ptp(delta[sel]) > 0 and np.ptp(ade[sel]) > 0:
+      rho, p = (float(v) for v in stats.spearmanr(delta[sel], ade[sel]))
+    out[subset] = {"delta_ade_spearman": rho, "delta_ade_spearman_p": p}
+  return out
 
 
 def baseline_errors(scenarios) -> dict:
@@ -62,31 +136,58 @@ def baseline_errors(scenarios) -> dict:
               baselines.constant_acceleration_yaw_rate(scenarios.xi), gt)}
 
 
+def _subset_masks(labels):
+  """(subset name, (M,) bool selection) for each of `SUBSETS`."""
+  return [(s, np.ones_like(labels, bool) if s == "all" else labels == SUBSETS.index(s) - 1)
+          for s in SUBSETS]
+
+
 def summarise(errors: dict, labels) -> dict:
-  """{method: per-scenario errors} + labels (M,) -> {method: {subset: {metric: value}}}."""
+  """{method: per-scenario errors} + labels (M,) -> {method: {subset: {metric: value}}}.
+
+  A subset's value is the mean over its scenarios (NaN for an empty subset). A metric
+  given as a masked array averages its unmasked scenarios only and is left out of a
+  subset where all are masked.
+
+  Raises:
+    NonFinitePredictionError: a per-scenario value is NaN or inf (naming the method,
+      metric and scenario positions).
+  """
   labels = np.asarray(labels)
   out = {}
   for method, per in errors.items():
-    per = {k: np.asarray(v, np.float64) for k, v in per.items()}
+    per = {k: np.ma.asarray(v, np.float64) for k, v in per.items()}
+    for k, v in per.items():
+      bad = np.flatnonzero(~np.isfinite(v.filled(0.0)))
+      if len(bad):
+        raise NonFinitePredictionError(f"{method} {k} is not finite for scenarios at "
+                                       f"positions {bad[:10].tolist()}")
     out[method] = {}
-    for subset in SUBSETS:
-      sel = (np.ones_like(labels, bool) if subset == "all"
-             else labels == SUBSETS.index(subset) - 1)
-      row = {k: float(v[sel].mean()) if sel.any() else float("nan") for k, v in per.items()}
+    for subset, sel in _subset_masks(labels):
+      row = {}
+      for k, v in per.items():
+        if not sel.any():
+          row[k] = float("nan")
+        elif v[sel].count():
+          row[k] = float(v[sel].mean())
       out[method][subset] = {**row, "num_scenarios": int(sel.sum())}
   return out
 
 
 def markdown_tables(results: dict) -> str:
-  """Two markdown tables: overall (paper Table II layout) and per class (Table I)."""
-  fmt = lambda x: "n/a" if x != x else f"{x:.2f}"
-  lines = ["| model | ADE [m] | FDE@5s [m] | miss rate (2 m) | hit rate (1.75 m) | scenarios "
-           "| paper highD ADE / FDE |", "|---|---|---|---|---|---|---|"]
+  """Three markdown tables: overall (paper Table II layout plus the added metrics), per
+  class (Table I) and cVMDx's scenario uncertainty per subset."""
+  fmt = lambda x, spec="{:.2f}": "-" if x is None else "n/a" if x != x else spec.format(x)
+  lines = ["| model | ADE [m] | FDE@5s [m] | final lon [m] | final lat [m] | miss rate (2 m) "
+           "| hit rate (1.75 m) | Brier-minFDE [m] | target lane, p >= 0.2 (lc) | scenarios "
+           "| paper highD ADE / FDE |", "|---|---|---|---|---|---|---|---|---|---|---|"]
   for method, by_subset in results.items():
     r = by_subset["all"]
     paper = PAPER_HIGHD.get(method)
-    lines.append(f"| {METHOD_TITLES.get(method, method)} | {fmt(r['ade'])} | {fmt(r['fde'])} | "
-                 f"{fmt(r['miss_rate'])} | {fmt(r['hit_rate'])} | {r['num_scenarios']} | "
+    cells = " | ".join(fmt(r.get(k)) for k in ("ade", "fde", "final_lon", "final_lat",
+                                                "miss_rate", "hit_rate", "brier_min_fde",
+                                                "target_lane_hit"))
+    lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} | {r['num_scenarios']} | "
                  f"{'%.2f / %.2f' % paper if paper else '-'} |")
   lines += ["", "| model | " + " | ".join(f"{s} ADE | {s} FDE" for s in constants.CLASS_NAMES)
             + " |", "|---|" + "---|---|" * len(constants.CLASS_NAMES)]
@@ -94,6 +195,15 @@ def markdown_tables(results: dict) -> str:
     cells = " | ".join(f"{fmt(by_subset[s]['ade'])} | {fmt(by_subset[s]['fde'])}"
                        for s in constants.CLASS_NAMES)
     lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} |")
+  if "cvmdx_mean" in results:
+    lines += ["", "| cVMDx scenario uncertainty | scenarios | out of distribution "
+              "| Spearman rho(delta, mean-of-N ADE) | p-value |", "|---|---|---|---|---|"]
+    for subset in SUBSETS:
+      r = results["cvmdx_mean"][subset]
+      lines.append(f"| {subset} | {r['num_scenarios']} | "
+                   f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
+                   f"{fmt(r.get('delta_ade_spearman'))} | "
+                   f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |")
   return "\n".join(lines) + "\n"
 
 
