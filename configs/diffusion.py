@@ -67,11 +67,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   config.sampling = ml_collections.ConfigDict()
   config.sampling.num_samples = 9  # N samples per scenario (paper)
-  config.sampling.sampler = "ddim"  # "ddim" or "ddpm"
+  # "ddim", "ddpm" or "dpmpp2m" (DPM-Solver++(2M) over the same guided ODE, `steps`
+  # evaluations; beyond the paper)
+  config.sampling.sampler = "ddim"
   # "paper" (the paper's equations) or "official" (the official code's guided DDIM loop:
   # steps - 1 updates, w from w_min to w_max_base by step index, no delta; README)
   config.sampling.mode = "paper"
-  config.sampling.steps = 10  # S DDIM steps (paper)
+  config.sampling.steps = 10  # S DDIM / DPM-Solver++ steps (paper: DDIM 10)
   config.sampling.eta = 0.0  # DDIM noise
   config.sampling.clip_x0 = 1.0  # clip predicted x0 to [-1, 1] (official sampler); 0 = off
   config.sampling.guidance = ml_collections.ConfigDict()
