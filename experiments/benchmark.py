@@ -18,7 +18,7 @@ Against the official code (../shared/reference_bench, run its official_timing.py
 times only the official-size U-Net (configs/diffusion.py:reference with Q = 256 tokens:
 22.47 M parameters) with the default sampling settings and writes
 {"params", "b1": {"total"}, "big": {"total", "b"}, "train": {"step", "batch"}}: seconds
-per call for 1 and for 32 scenarios end to end (sampling, VMM, hypotheses; the official
+per call for 1 and for 32 (--big) scenarios end to end (sampling, VMM, hypotheses; the official
 "total" is DDIM + post-processing per call), and per AdamW step at batch 256; medians
 of repeated calls after a warm-up. With --official_json it prints official / ours.
 """
@@ -49,12 +49,13 @@ _REFERENCE_JSON = flags.DEFINE_string(
 _OFFICIAL_JSON = flags.DEFINE_string(
     "official_json", None, "official_timing.py output: print official / ours (implies the "
     "reference-size timing).")
+_BIG = flags.DEFINE_integer("big", 32, "Scenarios per call of the reference 'big' timing "
+                            "(official_timing.py: BIG, 32).")
 _SAMPLER = flags.DEFINE_string("sampler", None, "Sampler timed as the default "
                                "(default: configs/diffusion.py without a preset).")
 _STEPS = flags.DEFINE_integer("steps", None, "Steps of --sampler (default: the config's).")
 NUM_TOKENS = 60
 REFERENCE_TOKENS = 256  # the official model: num_classes = 257 = Q + the null token
-REFERENCE_BIG = 32  # scenarios per call of the official "big" timing
 # (warm-up calls, timed calls) of the reference timings: b1, big, train
 REFERENCE_REPEATS = {"b1": (1, 7), "big": (1, 3), "train": (2, 5)}
 _predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
@@ -119,7 +120,7 @@ def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig
 
 
 def reference_timings(config, num_tokens: int, sampling: inference.SamplingConfig, *,
-                      big: int = REFERENCE_BIG, train_batch: int = 256,
+                      big: int = 32, train_batch: int = 256,
                       repeats=REFERENCE_REPEATS) -> dict:
   """Timings in the ../shared/reference_bench schema, seconds (medians).
 
@@ -177,7 +178,7 @@ def reference_main():
   official = read_timings(_OFFICIAL_JSON.value) if _OFFICIAL_JSON.value else None
   config = diffusion_config.get_config("reference")
   sampling = default_sampling(runs.sampling_config(config))
-  ours = reference_timings(config, REFERENCE_TOKENS, sampling)
+  ours = reference_timings(config, REFERENCE_TOKENS, sampling, big=_BIG.value)
   print(f"reference size: {ours['params'] / 1e6:.2f} M parameters, {sampling.sampler} "
         f"{sampling.steps} steps: B=1 {ours['b1']['total']:.3f} s, B={ours['big']['b']} "
         f"{ours['big']['total']:.3f} s, train {ours['train']['step']:.3f} s/step")
