@@ -42,7 +42,6 @@ _CRITERIA = flags.DEFINE_list("criteria", ["mean_ade", "mean_fde", "min_ade_k", 
                               "Errors that must stay within --tolerance of the reference's.")
 _FROM_JSON = flags.DEFINE_string("from_json", None, "Re-tabulate the rows of this pareto.json "
                                  "(no sampling; the run flags only name the output).")
-flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "out_dir"])
 REFERENCE = ("ddim", 10)  # the paper's sampler
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k")
 
@@ -113,6 +112,11 @@ def sample_rows() -> tuple[list[dict], str]:
 def main(argv):
   if len(argv) > 1:
     raise ValueError(f"sampler_pareto: unexpected arguments {argv[1:]}")
+  # checked here, not by flags.mark_flags_as_required: tests import this module, and a
+  # required flag would then break every other absl entry point parsed in that process
+  missing = [f.name for f in (_TOKENIZER, _DIFFUSION, _DATA, _OUT) if not f.value]
+  if missing:
+    raise ValueError(f"sampler_pareto: flags {missing} are required")
   unknown = sorted(set(_CRITERIA.value) - set(COLUMNS))
   if unknown:
     raise ValueError(f"--criteria: unknown {unknown}; choose from {COLUMNS}")
