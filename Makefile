@@ -30,6 +30,8 @@ test-slow: $(STAMP)
 benchmark: $(STAMP)
 	$(PY) experiments/benchmark_sampling.py
 	$(PY) experiments/benchmark.py
+	@echo "side by side with the official code: ../shared/reference_bench/README.md, then"
+	@echo "  $(PY) experiments/benchmark.py --reference_json=ours.json --official_json=official.json"
 
 clean:
 	rm -rf $(VENV) runs

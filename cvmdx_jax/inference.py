@@ -15,10 +15,11 @@ import jax.numpy as jnp
 from cvmdx_jax import constants, ego_motion, normalization, vmm
 from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
                                  ddpm_sample, guided_v_fn, official_ddim_sample)
+from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
 from cvmdx_jax.models.unet1d import apply_unet
 from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
-SAMPLERS = ("ddim", "ddpm")
+SAMPLERS = ("ddim", "ddpm", "dpmpp2m")
 MODES = ("paper", "official")
 STATIC_ARGNAMES = ("graphdef", "null_token", "config")  # of `predict_batch` under jax.jit
 
@@ -29,11 +30,13 @@ class SamplingConfig:
 
   Attributes:
     num_samples: N samples per scenario.
-    sampler: "ddim" (S steps) or "ddpm" (all T steps, the cVMD way).
+    sampler: "ddim" (S steps), "ddpm" (all T steps, the cVMD way) or "dpmpp2m"
+      (DPM-Solver++(2M) over the same guided ODE as DDIM, S network evaluations:
+      `diffusion.solvers.dpmpp_2m_sample`; beyond the paper).
     mode: "paper" (the paper's equations) or "official" (the official code's guided
       DDIM loop: `diffusion.official_ddim_sample`, S - 1 updates, weights from
       guidance.w_min to guidance.w_max_base over the step index, no delta).
-    steps: S, DDIM steps.
+    steps: S, DDIM or DPM-Solver++(2M) steps (guided evaluations per sample).
     eta: DDIM noise (0 = deterministic).
     clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
       official sampler clips to [-1, 1]); None = no clipping.
@@ -107,6 +110,9 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
                      config.guidance)
   if config.sampler == "ddpm":
     return ddpm_sample(v_fn, key, shape, schedule, clip_x0=config.clip_x0)
+  if config.sampler == "dpmpp2m":
+    return dpmpp_2m_sample(v_fn, key, shape, schedule, steps=config.steps,
+                           clip_x0=config.clip_x0)
   return ddim_sample(v_fn, key, shape, schedule, steps=config.steps, eta=config.eta,
                      clip_x0=config.clip_x0)
 

@@ -6,19 +6,35 @@ Prints, for the CPU default U-Net (configs/diffusion.py:demo) and the reference-
 U-Net (configs/diffusion.py:paper): the full jitted predict path (9 samples, DDIM 10,
 uncertainty-aware CFG, VMM, GMM/BIC hypotheses) at 1 and B scenarios per call
 (latency, ms per scenario, scenarios/s, achieved GFLOP/s from XLA's count of one
-U-Net forward), DDPM(1000) vs DDIM(10) for one scenario, and training steps/s at
-batch 256. Weights are random: speed does not depend on them.
+U-Net forward), the same with the default sampler (configs/diffusion.py, no preset),
+DDPM(1000) against DDIM(10) and against the default sampler for one scenario, and
+training steps/s at batch 256. Weights are random: speed does not depend on them.
+
+Against the official code (../shared/reference_bench, run its official_timing.py first):
+
+  PYTHONPATH=. .venv/bin/python experiments/benchmark.py \
+      --reference_json=/tmp/ours.json --official_json=/tmp/official.json
+
+times only the official-size U-Net (configs/diffusion.py:reference with Q = 256 tokens:
+22.47 M parameters) with the default sampling settings and writes
+{"params", "b1": {"total"}, "big": {"total", "b"}, "train": {"step", "batch"}}: seconds
+per call for 1 and for 32 (--big) scenarios end to end (sampling, VMM, hypotheses; the official
+"total" is DDIM + post-processing per call), and per AdamW step at batch 256; medians
+of repeated calls after a warm-up. With --official_json it prints official / ours.
 """
 
 import dataclasses
+import json
+import statistics
 import time
+from pathlib import Path
 
 from absl import flags
 import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import diffusion, ego_motion, inference, runs
+from cvmdx_jax import atomic, diffusion, ego_motion, inference, runs
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax import cli
@@ -28,16 +44,34 @@ _REF_BATCH = flags.DEFINE_integer("reference_batch", 16,
                                   "Scenarios per call, reference model (256 takes minutes).")
 _TRAIN_BATCH = flags.DEFINE_integer("train_batch", 256, "Batch of the training-step timing.")
 _REPEATS = flags.DEFINE_integer("repeats", 2, "Timed calls after the warm-up call.")
+_REFERENCE_JSON = flags.DEFINE_string(
+    "reference_json", None, "Time only the official-size U-Net and write its timings here "
+    "(the ../shared/reference_bench schema).")
+_OFFICIAL_JSON = flags.DEFINE_string(
+    "official_json", None, "official_timing.py output: print official / ours (implies the "
+    "reference-size timing).")
+_BIG = flags.DEFINE_integer("big", 32, "Scenarios per call of the reference 'big' timing "
+                            "(official_timing.py: BIG, 32).")
+_SAMPLER = flags.DEFINE_string("sampler", None, "Sampler timed as the default "
+                               "(default: configs/diffusion.py without a preset).")
+_STEPS = flags.DEFINE_integer("steps", None, "Steps of --sampler (default: the config's).")
 NUM_TOKENS = 60
+REFERENCE_TOKENS = 256  # the official model: num_classes = 257 = Q + the null token
+# (warm-up calls, timed calls) of the reference timings: b1, big, train
+REFERENCE_REPEATS = {"b1": (1, 7), "big": (1, 3), "train": (2, 5)}
 _predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
 
 
-def _time(fn, repeats):
-  jax.block_until_ready(fn())
-  start = time.perf_counter()
-  for _ in range(repeats):
+def _time(fn, repeats, warmup=1):
+  """Median seconds of `repeats` calls of `fn` after `warmup` untimed calls."""
+  for _ in range(warmup):
     jax.block_until_ready(fn())
-  return (time.perf_counter() - start) / repeats
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - start)
+  return statistics.median(times)
 
 
 def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
@@ -50,17 +84,20 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, repeats: int):
+def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, repeats: int,
+                   num_tokens: int = NUM_TOKENS, warmup: int = 1):
+  """Median seconds of one jitted `predict_batch` call for `b` scenarios."""
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(
-      graphdef, params, jnp.arange(b) % NUM_TOKENS, jnp.full(b, 5.0), jnp.full(b, 30.0),
+      graphdef, params, jnp.arange(b) % num_tokens, jnp.full(b, 5.0), jnp.full(b, 30.0),
       jnp.zeros(b), keys, jnp.zeros((b, ego_motion.NUM_FEATURES)), schedule=schedule,
-      null_token=NUM_TOKENS, config=config)
-  return _time(call, repeats)
+      null_token=num_tokens, config=config)
+  return _time(call, repeats, warmup)
 
 
-def train_timing(config, cfg, batch: int, repeats: int):
+def train_timing(config, cfg, batch: int, repeats: int, warmup: int = 1):
+  """Median seconds of one jitted training step (AdamW, EMA) at `batch`."""
   _, init_fn, step_fn = diffusion_train.init_and_step(config, cfg, 10_000)
   state = init_fn(jax.random.key(0))
   step = jax.jit(step_fn, donate_argnums=0)
@@ -72,17 +109,98 @@ def train_timing(config, cfg, batch: int, repeats: int):
   def one():
     holder["state"], metrics = step(holder["state"], data, jax.random.key(2))
     return metrics["loss"]
-  return _time(one, repeats)
+  return _time(one, repeats, warmup)
+
+
+def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig:
+  """`base` with the default sampler and steps (--sampler, --steps, else
+  configs/diffusion.py without a preset)."""
+  default = diffusion_config.get_config().sampling
+  return dataclasses.replace(base, sampler=_SAMPLER.value or default.sampler,
+                             steps=_STEPS.value or default.steps)
+
+
+def reference_timings(config, num_tokens: int, sampling: inference.SamplingConfig, *,
+                      big: int = 32, train_batch: int = 256,
+                      repeats=REFERENCE_REPEATS) -> dict:
+  """Timings in the ../shared/reference_bench schema, seconds (medians).
+
+  Returns:
+    {"params", "sampler", "steps", "b1": {"total"}, "big": {"total", "b"},
+     "train": {"step", "batch"}}; "total" is one predict_batch call end to end.
+  """
+  cfg = runs.unet_config(config, num_tokens)
+  graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
+  timed = lambda b, key: predict_timing(graphdef, params, b, sampling, repeats[key][1],
+                                        num_tokens, repeats[key][0])
+  train_warmup, train_repeats = repeats["train"]
+  return {"params": unet1d.count_params(params), "sampler": sampling.sampler,
+          "steps": sampling.steps, "b1": {"total": timed(1, "b1")},
+          "big": {"total": timed(big, "big"), "b": big},
+          "train": {"step": train_timing(config, cfg, train_batch, train_repeats, train_warmup),
+                    "batch": train_batch}}
+
+
+def read_timings(path) -> dict:
+  """A timing JSON in the reference_bench schema.
+
+  Raises:
+    ValueError: a field is missing or not a positive number (names the file and field).
+  """
+  timings = json.loads(Path(path).read_text())
+  for group, field in (("b1", "total"), ("big", "total"), ("big", "b"), ("train", "step")):
+    value = timings.get(group, {}).get(field) if isinstance(timings.get(group), dict) else None
+    if not isinstance(value, (int, float)) or value <= 0:
+      raise ValueError(f"{path}: field {group}.{field} must be a positive number, got {value!r}")
+  return timings
+
+
+def ratio_rows(official: dict, ours: dict) -> list[tuple[str, float, float, float]]:
+  """(what, official s, ours s, official / ours) per scenario at B = 1, per scenario at
+  B = big, per training step."""
+  per = lambda t: t["big"]["total"] / t["big"]["b"]
+  return [(what, off, mine, off / mine) for what, off, mine in (
+      ("1 scenario, end to end", official["b1"]["total"], ours["b1"]["total"]),
+      (f"{ours['big']['b']} scenarios, per scenario", per(official), per(ours)),
+      (f"training step, batch {ours['train']['batch']}", official["train"]["step"],
+       ours["train"]["step"]))]
+
+
+def ratio_table(official: dict, ours: dict) -> str:
+  """Markdown table of `ratio_rows`."""
+  lines = ["| what | official | cvmdx_jax | official / cvmdx_jax |", "|---|---|---|---|"]
+  lines += [f"| {what} | {off:.3f} s | {mine:.3f} s | {ratio:.2f}x |"
+            for what, off, mine, ratio in ratio_rows(official, ours)]
+  return "\n".join(lines)
+
+
+def reference_main():
+  """--reference_json / --official_json: the official-size timings and the ratio table."""
+  official = read_timings(_OFFICIAL_JSON.value) if _OFFICIAL_JSON.value else None
+  config = diffusion_config.get_config("reference")
+  sampling = default_sampling(runs.sampling_config(config))
+  ours = reference_timings(config, REFERENCE_TOKENS, sampling, big=_BIG.value)
+  print(f"reference size: {ours['params'] / 1e6:.2f} M parameters, {sampling.sampler} "
+        f"{sampling.steps} steps: B=1 {ours['b1']['total']:.3f} s, B={ours['big']['b']} "
+        f"{ours['big']['total']:.3f} s, train {ours['train']['step']:.3f} s/step")
+  if _REFERENCE_JSON.value:
+    atomic.write_json(_REFERENCE_JSON.value, ours, indent=1)
+  if official is not None:
+    print(ratio_table(official, ours))
 
 
 def main(argv):
   del argv
   print(f"devices: {jax.devices()}")
+  if _REFERENCE_JSON.value or _OFFICIAL_JSON.value:
+    reference_main()
+    return
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = diffusion_config.get_config(preset)
     cfg = runs.unet_config(config, NUM_TOKENS)
     ddim = inference.SamplingConfig(conditioning=runs.conditioning(config))
+    fast = default_sampling(ddim)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
     gflop = forward_flops(graphdef, params, cfg.cond_dim) / 1e9
     per_scenario = gflop * ddim.num_samples * ddim.steps * 2  # cond + uncond per step
@@ -93,11 +211,18 @@ def main(argv):
       sec = predict_timing(graphdef, params, b, ddim, _REPEATS.value)
       print(f"predict  B={b:4d}: {sec:8.3f} s/call  {1000 * sec / b:8.1f} ms/scenario  "
             f"{b / sec:7.1f} scenarios/s  {per_scenario * b / sec:6.1f} GFLOP/s")
+    for b in (1, big):
+      sec = predict_timing(graphdef, params, b, fast, _REPEATS.value)
+      print(f"predict  B={b:4d} {fast.sampler}({fast.steps}): {sec:8.3f} s/call  "
+            f"{1000 * sec / b:8.1f} ms/scenario  {b / sec:7.1f} scenarios/s")
     ddpm = dataclasses.replace(ddim, sampler="ddpm")
     t_ddim = predict_timing(graphdef, params, 1, ddim, 1)
+    t_fast = predict_timing(graphdef, params, 1, fast, 1)
     t_ddpm = predict_timing(graphdef, params, 1, ddpm, 1)
     print(f"DDPM(1000) {t_ddpm:.2f} s vs DDIM(10) {t_ddim:.3f} s per scenario (9 samples): "
           f"{t_ddpm / t_ddim:.1f}x")
+    print(f"DDPM(1000) {t_ddpm:.2f} s vs default {fast.sampler}({fast.steps}) {t_fast:.3f} s "
+          f"per scenario (9 samples): {t_ddpm / t_fast:.1f}x")
     sec = train_timing(config, cfg, _TRAIN_BATCH.value, _REPEATS.value)
     print(f"train    B={_TRAIN_BATCH.value}: {sec:.3f} s/step  {1 / sec:.2f} steps/s")
 

@@ -1,0 +1,140 @@
+"""Network evaluations against accuracy: DDIM and DPM-Solver++(2M) at several step
+counts on one trained run's validation split; picks the default sampler.
+
+  PYTHONPATH=. .venv/bin/python experiments/sampler_pareto.py \\
+      --tokenizer_dir=runs/demo/tokenizer --diffusion_dir=runs/demo/diffusion \\
+      --data_dir=runs/demo/data --out_dir=runs/demo/pareto
+
+Every setting samples the same class-balanced scenarios with the same seed and the
+run's own guidance (paper mode). U-Net evaluations per sample = 2 S (conditional and
+unconditional branch per step). The chosen default is the setting with the fewest
+evaluations whose --criteria (default: mean ADE / FDE and best-of-K ADE / FDE) are all
+within --tolerance of the reference's (the paper's DDIM-10): with mean ADE alone, a
+2-step solver wins while its samples collapse (best-of-K 3 % worse; BUILD_NOTES.md).
+Writes <out_dir>/pareto.md and pareto.json; --from_json re-tabulates a pareto.json.
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+
+from absl import flags
+import jax.numpy as jnp
+import numpy as np
+
+from cvmdx_jax import atomic, cli
+from cvmdx_jax.data import dataset, scenarios as scenarios_lib
+from cvmdx_jax.evaluation import scoring
+from cvmdx_jax.predict import Predictor
+
+_TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
+_DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
+_DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
+_OUT = flags.DEFINE_string("out_dir", None, "Where pareto.md and pareto.json go.")
+_SPLIT = flags.DEFINE_string("split", "val", "Split to evaluate (choose on val).")
+_NUM = flags.DEFINE_integer("num_scenarios", 300, "Class-balanced subset size (0 = all).")
+_SEED = flags.DEFINE_integer("seed", 0, "Sampling and subset seed.")
+_DDIM = flags.DEFINE_list("ddim_steps", ["1", "2", "3", "5", "10", "20"], "DDIM step counts.")
+_DPM = flags.DEFINE_list("dpmpp2m_steps", ["2", "3", "4", "5", "6", "8", "10"],
+                         "DPM-Solver++(2M) step counts.")
+_TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative loss vs the reference.")
+_CRITERIA = flags.DEFINE_list("criteria", ["mean_ade", "mean_fde", "min_ade_k", "min_fde_k"],
+                              "Errors that must stay within --tolerance of the reference's.")
+_FROM_JSON = flags.DEFINE_string("from_json", None, "Re-tabulate the rows of this pareto.json "
+                                 "(no sampling; the run flags only name the output).")
+REFERENCE = ("ddim", 10)  # the paper's sampler
+COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k")
+
+
+def choose_default(rows: list[dict], tolerance: float, criteria=("mean_ade",),
+                   reference=REFERENCE) -> dict:
+  """The row with the fewest evaluations per sample (then the lowest mean ADE) whose
+  errors in `criteria` are each <= (1 + tolerance) x the reference row's.
+
+  Raises:
+    ValueError: no row is the reference setting.
+  """
+  ref = [r for r in rows if (r["sampler"], r["steps"]) == reference]
+  if not ref:
+    raise ValueError(f"sampler_pareto: the reference setting {reference} was not evaluated")
+  ok = lambda r: all(r[c] <= (1.0 + tolerance) * ref[0][c] for c in criteria)
+  return min(filter(ok, rows), key=lambda r: (r["evaluations"], r["mean_ade"]))
+
+
+def markdown(rows: list[dict], choice: dict, tolerance: float, note: str,
+             criteria=("mean_ade",)) -> str:
+  """The Pareto table, one row per setting, the chosen one marked."""
+  lines = [f"Sampler Pareto: {note}", "",
+           "| sampler | S | U-Net evals / sample | mean ADE | mean FDE | minADE_K | minFDE_K |",
+           "|---|---|---|---|---|---|---|"]
+  for r in sorted(rows, key=lambda r: (r["evaluations"], r["sampler"])):
+    mark = " **(default)**" if r is choice else ""
+    lines.append(f"| {r['sampler']}{mark} | {r['steps']} | {r['evaluations']} | "
+                 + " | ".join(f"{r[c]:.3f}" for c in COLUMNS) + " |")
+  lines += ["", f"Default: {choice['sampler']} S = {choice['steps']}, the fewest evaluations "
+            f"with {', '.join(criteria)} within {100 * tolerance:g} % of "
+            f"{REFERENCE[0]}-{REFERENCE[1]} (chosen on val)."]
+  return "\n".join(lines) + "\n"
+
+
+def evaluate(predictor: Predictor, data, sampler: str, steps: int, seed: int) -> dict:
+  """Mean errors (m) of one sampler setting on `data` (time: experiments/benchmark.py)."""
+  p = dataclasses.replace(predictor, sampling=dataclasses.replace(
+      predictor.sampling, sampler=sampler, steps=steps, mode="paper"))
+  out = p(data, seed=seed)
+  errors = scoring.cvmdx_errors(out.prediction, jnp.asarray(data.future))
+  means = {"mean_ade": errors["cvmdx_mean"]["ade"], "mean_fde": errors["cvmdx_mean"]["fde"],
+           "min_ade_k": errors["cvmdx_best_of_k"]["ade"],
+           "min_fde_k": errors["cvmdx_best_of_k"]["fde"]}
+  return {"sampler": sampler, "steps": steps, "evaluations": 2 * steps,
+          **{k: float(np.mean(v)) for k, v in means.items()}}
+
+
+def sample_rows() -> tuple[list[dict], str]:
+  """Evaluates every --ddim_steps / --dpmpp2m_steps setting: (rows, a note on the data)."""
+  settings = ([("ddim", int(s)) for s in _DDIM.value]
+              + [("dpmpp2m", int(s)) for s in _DPM.value])
+  if REFERENCE not in settings:
+    raise ValueError(f"--ddim_steps must include {REFERENCE[1]} (the reference setting)")
+  data = dataset.load_split(_DATA.value, _SPLIT.value)
+  if _NUM.value:
+    data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
+  predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
+  rows = []
+  for sampler, steps in settings:
+    rows.append(evaluate(predictor, data, sampler, steps, _SEED.value))
+    print(rows[-1], flush=True)
+  note = (f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} class-balanced scenarios, "
+          f"seed {_SEED.value}, {predictor.sampling.num_samples} samples")
+  return rows, note
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise ValueError(f"sampler_pareto: unexpected arguments {argv[1:]}")
+  # checked here, not by flags.mark_flags_as_required: tests import this module, and a
+  # required flag would then break every other absl entry point parsed in that process
+  missing = [f.name for f in (_TOKENIZER, _DIFFUSION, _DATA, _OUT) if not f.value]
+  if missing:
+    raise ValueError(f"sampler_pareto: flags {missing} are required")
+  unknown = sorted(set(_CRITERIA.value) - set(COLUMNS))
+  if unknown:
+    raise ValueError(f"--criteria: unknown {unknown}; choose from {COLUMNS}")
+  if _FROM_JSON.value:
+    saved = json.loads(Path(_FROM_JSON.value).read_text())
+    rows, note = saved["rows"], saved["note"]
+  else:
+    rows, note = sample_rows()
+  choice = choose_default(rows, _TOL.value, _CRITERIA.value)
+  table = markdown(rows, choice, _TOL.value, note, _CRITERIA.value)
+  out = Path(_OUT.value)
+  out.mkdir(parents=True, exist_ok=True)
+  atomic.write_json(out / "pareto.json", {"note": note, "tolerance": _TOL.value,
+                                          "criteria": _CRITERIA.value, "rows": rows,
+                                          "default": choice})
+  atomic.write_text(out / "pareto.md", table)
+  print(table)
+
+
+if __name__ == "__main__":
+  cli.run(main)

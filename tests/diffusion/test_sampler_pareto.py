@@ -1,0 +1,46 @@
+"""experiments/sampler_pareto.py: choosing the default sampler from a Pareto table."""
+
+import pytest
+
+from experiments import sampler_pareto
+
+
+def _row(sampler, steps, ade):
+  return {"sampler": sampler, "steps": steps, "evaluations": 2 * steps, "mean_ade": ade,
+          "mean_fde": 3 * ade, "min_ade_k": ade - 0.1, "min_fde_k": 3 * ade - 0.2}
+
+
+ROWS = [_row("ddim", 2, 1.30), _row("ddim", 5, 1.03), _row("ddim", 10, 1.00),
+        _row("dpmpp2m", 3, 1.025), _row("dpmpp2m", 4, 1.019), _row("dpmpp2m", 5, 1.01)]
+
+
+def test_fewest_evaluations_within_the_tolerance():
+  # bound 1.02: dpmpp2m 3 (1.025) is out, dpmpp2m 4 (1.019, 8 evals) is the cheapest in
+  assert sampler_pareto.choose_default(ROWS, 0.02) is ROWS[4]
+  # a looser bound admits dpmpp2m 3; ties in evaluations go to the lower ADE
+  assert sampler_pareto.choose_default(ROWS, 0.03) is ROWS[3]
+  tie = ROWS + [_row("ddim", 3, 1.02)]
+  assert sampler_pareto.choose_default(tie, 0.03) is tie[-1]
+  # zero tolerance: only settings at least as good as DDIM-10 (here itself)
+  assert sampler_pareto.choose_default(ROWS, 0.0) is ROWS[2]
+
+
+def test_every_criterion_must_hold():
+  # dpmpp2m 4 is within 2 % in mean ADE but its best-of-K FDE is 5 % worse than DDIM-10's
+  rows = [dict(r) for r in ROWS]
+  rows[4]["min_fde_k"] = 1.05 * rows[2]["min_fde_k"]
+  assert sampler_pareto.choose_default(rows, 0.02) is rows[4]
+  assert sampler_pareto.choose_default(rows, 0.02, ("mean_ade", "min_fde_k")) is rows[5]
+
+
+def test_reference_must_be_evaluated():
+  with pytest.raises(ValueError, match="reference"):
+    sampler_pareto.choose_default(ROWS[:2], 0.02)
+
+
+def test_markdown_marks_the_choice_and_sorts_by_cost():
+  table = sampler_pareto.markdown(ROWS, ROWS[4], 0.02, "note").splitlines()
+  body = [l for l in table if l.startswith("| ddim") or l.startswith("| dpmpp2m")]
+  assert [l.split("|")[3].strip() for l in body] == ["4", "6", "8", "10", "10", "20"]
+  assert "**(default)**" in body[2] and sum("default" in l for l in body) == 1
+  assert "dpmpp2m S = 4" in table[-1] and "chosen on val" in table[-1]
