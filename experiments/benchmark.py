@@ -34,10 +34,9 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import atomic, diffusion, ego_motion, inference, runs
+from cvmdx_jax import atomic, cli, diffusion, ego_motion, inference, runs
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import diffusion as diffusion_train
-from cvmdx_jax import cli
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
 _REF_BATCH = flags.DEFINE_integer("reference_batch", 16,
