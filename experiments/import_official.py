@@ -68,7 +68,8 @@ def main(argv):
       raise ValueError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
                        f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
                        f"{cfg.num_tokens}")
-    tokens_meta = {"checkpoint": {"fingerprint": bundle.fingerprint.to_dict(), "step": None}}
+    tokens_meta = {"checkpoint": {"fingerprint": bundle.fingerprint.to_dict(),
+                                  **bundle.checkpoint.to_dict()}}  # step, params_sha256
     config.tokenizer_dir = _TOKENIZER_DIR.value
   for field in ("base_channels", "num_res_blocks", "emb_mult", "num_heads", "groups",
                 "dropout"):

@@ -32,12 +32,14 @@ _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _OUT = flags.DEFINE_string("out_dir", None, "Where pareto.md and pareto.json go.")
 _SPLIT = flags.DEFINE_string("split", "val", "Split to evaluate (choose on val).")
-_NUM = flags.DEFINE_integer("num_scenarios", 300, "Class-balanced subset size (0 = all).")
+_NUM = flags.DEFINE_integer("num_scenarios", 300, "Class-balanced subset size (0 = all).",
+                            lower_bound=0)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and subset seed.")
 _DDIM = flags.DEFINE_list("ddim_steps", ["1", "2", "3", "5", "10", "20"], "DDIM step counts.")
 _DPM = flags.DEFINE_list("dpmpp2m_steps", ["2", "3", "4", "5", "6", "8", "10"],
                          "DPM-Solver++(2M) step counts.")
-_TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative loss vs the reference.")
+_TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative loss vs the reference.",
+                          lower_bound=0.0)
 _CRITERIA = flags.DEFINE_list("criteria", ["mean_ade", "mean_fde", "min_ade_k", "min_fde_k"],
                               "Errors that must stay within --tolerance of the reference's.")
 _FROM_JSON = flags.DEFINE_string("from_json", None, "Re-tabulate the rows of this pareto.json "

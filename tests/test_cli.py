@@ -88,6 +88,8 @@ CASES = [
     ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
     ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
+    ("sampler_pareto", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
+    ("sampler_pareto", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
     ("run_demo", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
     ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),
