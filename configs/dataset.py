@@ -22,7 +22,8 @@ draw per recording, chosen to cover highD-like behaviour (car speeds mostly 80-1
 trucks 80-90 km/h, 10-30 % trucks, lane changes over ~4-6 s): 3 or 2 lanes of 3.75 m, speed
 limit 100, 120 or 130 km/h, 500-1000 veh/h per lane, Krauss or IDM car following; driver
 ranges in `sumo.car` / `sumo.truck` (SUMO vType parameters, SI units).
-`:small` (the demo): 6 / 1 / 2 recordings of 120 s and 1 test_ood of 40 s.
+`:small` (the demo): 6 / 2 / 2 recordings of 120 s and 1 test_ood of 40 s (two val
+recordings, so that val holds both lane counts).
 """
 
 import ml_collections
@@ -105,7 +106,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   if arg.small:
     s.recordings = ml_collections.ConfigDict(
-        {"train": 6, "val": 1, "test": 2, "test_ood": 1})
+        {"train": 6, "val": 2, "test": 2, "test_ood": 1})
     s.duration_s = 120.0
     s.held_out.duration_s = 40.0
   if arg.tiny:

@@ -19,11 +19,17 @@ t0, 25 Hz; ego = vehicle 0). Each feature is (value - centre) / scale, clipped t
 | 10 | 1 where a preceding vehicle is there at t0, else 0 | - | 0 | 1 |
 | 11 | gap to the preceding vehicle at t0, min(x, 150 m) (150 m when none) | m | 50 | 50 |
 | 12 | its closing speed v_x,preceding - v_x at t0 (0 when none) | m/s | 0 | 5 |
+| 13 + 4k | 1 where neighbour k of `NEIGHBOURS` is there at t0, else 0 | - | 0 | 1 |
+| 14 + 4k | its longitudinal offset x_k - x at t0, clipped to +-150 m (when absent: +150 ahead, -150 behind, 0 alongside) | m | 0 | 50 |
+| 15 + 4k | its relative speed v_x,k - v_x at t0 (0 when absent) | m/s | 0 | 5 |
+| 16 + 4k | its lateral offset y_k - y at t0 (0 when absent) | m | 0 | 3.75 |
 
 xi holds no lane markings and its origin is the ego, not the lane, so the true offset from
 the lane centre is not derivable from xi alone; feature 8 is the ego's y minus the mean y
 of the same-lane neighbours at t0 (slots "preceding" and "following", assigned by lane).
-Features 6-7 give the lateral position history relative to t0.
+Features 6-7 give the lateral position history relative to t0. Features 13-40 describe
+the other seven neighbours at t0 (k = 0 .. 6 over `NEIGHBOURS`): whether the adjacent lanes
+exist and have room, and whether they are faster, is what a lane change depends on.
 
 `residual_controls(ego, decay_s)` turns features 1 and 3 back into the ego's current
 [a_x, yaw rate] and extrapolates them over the 125 predicted steps with an exponential
@@ -56,6 +62,13 @@ FEATURES = (
     ("leader_gap", 50.0, 50.0),
     ("leader_closing_speed", 0.0, 5.0),
 )
+# the neighbours of features 13-40 and where an absent one is put (+1 ahead, -1 behind)
+NEIGHBOURS = (("following", -1.0), ("leftPreceding", 1.0), ("leftAlongside", 0.0),
+              ("leftFollowing", -1.0), ("rightPreceding", 1.0), ("rightAlongside", 0.0),
+              ("rightFollowing", -1.0))
+FEATURES += tuple(feature for slot, _ in NEIGHBOURS for feature in (
+    (f"{slot}_present", 0.0, 1.0), (f"{slot}_dx", 0.0, 50.0), (f"{slot}_dv", 0.0, 5.0),
+    (f"{slot}_dy", 0.0, 3.75)))
 NUM_FEATURES = len(FEATURES)
 CONDITIONINGS = ("token", "ego_film", "ego_residual", "ego_film_residual")
 CLIP = 5.0  # normalised features are clipped to [-CLIP, CLIP]
@@ -108,6 +121,17 @@ def ego_features(xi, mask):
       jnp.sum(lane_present, -1), 1), 0.0)
   leader = mask[:, _PRECEDING, -1]
   lead = xi[:, _PRECEDING, -1]
+  slots = [constants.VEHICLE_SLOTS.index(slot) for slot, _ in NEIGHBOURS]
+  present = mask[:, slots, -1]  # (M, 7)
+  other = xi[:, slots, -1]  # (M, 7, 4)
+  absent_dx = MAX_GAP_M * jnp.asarray([side for _, side in NEIGHBOURS], jnp.float32)
+  neighbours = jnp.stack([
+      present.astype(jnp.float32),
+      jnp.where(present, jnp.clip(other[..., 0] - ego[:, -1:, 0], -MAX_GAP_M, MAX_GAP_M),
+                absent_dx),
+      jnp.where(present, other[..., 2] - ego[:, -1:, 2], 0.0),
+      jnp.where(present, other[..., 1] - ego[:, -1:, 1], 0.0),
+  ], axis=-1).reshape(len(xi), -1)
   raw = jnp.stack([
       speed[:, -1],
       _slope(speed[:, recent], weights),
@@ -124,6 +148,7 @@ def ego_features(xi, mask):
       jnp.where(leader, jnp.clip(lead[:, 0] - ego[:, -1, 0], 0.0, MAX_GAP_M), MAX_GAP_M),
       jnp.where(leader, lead[:, 2] - ego[:, -1, 2], 0.0),
   ], axis=-1)
+  raw = jnp.concatenate([raw, neighbours], axis=-1)
   centre = jnp.asarray([c for _, c, _ in FEATURES], jnp.float32)
   scale = jnp.asarray([s for _, _, s in FEATURES], jnp.float32)
   return jnp.clip((raw - centre) / scale, -CLIP, CLIP)

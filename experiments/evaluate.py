@@ -3,11 +3,12 @@
   PYTHONPATH=. python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
       --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
       --workdir=runs/demo/eval
+`--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.
 """
 
 from absl import app, flags
 
-from cvmdx_jax import cli
+from cvmdx_jax import cli, inference
 from cvmdx_jax.evaluation import report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
@@ -21,6 +22,12 @@ _MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 =
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 300,
                              "Scenarios for the single-DDPM-sample baseline (0 = skip).",
                              lower_bound=0)
+_SAMPLER = flags.DEFINE_enum("sampler", None, list(inference.SAMPLERS),
+                              "Sampler instead of the diffusion run's (e.g. ddim with "
+                              "--steps=10: the paper's DDIM-10 on a model whose default is "
+                              "dpmpp2m).")
+_STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.",
+                              lower_bound=1)
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir")
 cli.output_dirs("workdir")
@@ -29,9 +36,12 @@ cli.output_dirs("workdir")
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  overrides = {k: v for k, v in (("sampler", _SAMPLER.value), ("steps", _STEPS.value))
+               if v is not None}
   report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
              data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
-             seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value)
+             seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value,
+             sampling_overrides=overrides)
   print(open(f"{_WORKDIR.value}/results.md").read())
 
 

@@ -69,6 +69,8 @@ CASES = [
      "--data_dir={T}/empty --workdir={NEW}", "--tokenizer_dir="),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --max_scenarios=-5", "--max_scenarios=-5"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --seed=4294967296", "--seed=4294967296"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --sampler=euler", "--sampler=euler"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --steps=0", "--steps=0"),
     ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",

@@ -28,7 +28,10 @@ def _raw(features):
 
 def _no_neighbours(raw):
   # lane reference, leader flag, gap (150 m when no leader), closing speed
-  np.testing.assert_allclose(raw[8:], [0.0, 0.0, 0.0, 150.0, 0.0], atol=1e-5)
+  np.testing.assert_allclose(raw[8:13], [0.0, 0.0, 0.0, 150.0, 0.0], atol=1e-5)
+  # per other neighbour: absent, put 150 m ahead / behind or alongside, no speed, no offset
+  expected = [[0.0, 150.0 * side, 0.0, 0.0] for _, side in ego_motion.NEIGHBOURS]
+  np.testing.assert_allclose(raw[13:].reshape(-1, 4), expected, atol=1e-5)
 
 
 def test_constant_speed_straight():
@@ -73,9 +76,29 @@ def test_neighbours_give_lane_offset_and_leader():
   mask[0, (preceding, following), -1] = True
   raw = _raw(ego_motion.ego_features(xi, mask))
   # ego y = 0; lane centre = mean(0.3, 0.5); leader 42 m ahead, 2.5 m/s slower
-  np.testing.assert_allclose(raw[8:], [-0.4, 1.0, 1.0, 42.0, -2.5], atol=1e-5)
+  np.testing.assert_allclose(raw[8:13], [-0.4, 1.0, 1.0, 42.0, -2.5], atol=1e-5)
+  following_row = 13 + 4 * [slot for slot, _ in ego_motion.NEIGHBOURS].index("following")
+  np.testing.assert_allclose(raw[following_row:following_row + 4], [1.0, -20.0, 1.0, 0.5],
+                             atol=1e-5)
   mask[0, following, -1] = False  # one same-lane neighbour is enough
   np.testing.assert_allclose(_raw(ego_motion.ego_features(xi, mask))[8], -0.3, atol=1e-5)
+
+
+def test_side_neighbours_offsets_and_clip():
+  xi, mask = _scenario(30.0 * TAU, np.zeros(T), np.full(T, 30.0), np.zeros(T))
+  xi[0, 0, -1, 1] = 0.2  # the ego 0.2 m left of its origin at t0
+  placed = {"leftPreceding": [35.0, 3.9, 33.0, 0.1], "rightFollowing": [-400.0, -3.5, 29.0, 0.0],
+            "leftAlongside": [-1.0, 3.7, 30.5, 0.0]}
+  for slot, state in placed.items():
+    xi[0, constants.VEHICLE_SLOTS.index(slot), -1] = state
+    mask[0, constants.VEHICLE_SLOTS.index(slot), -1] = True
+  raw = _raw(ego_motion.ego_features(xi, mask))[13:].reshape(-1, 4)
+  rows = {slot: row for (slot, _), row in zip(ego_motion.NEIGHBOURS, raw)}
+  np.testing.assert_allclose(rows["leftPreceding"], [1.0, 35.0, 3.0, 3.7], atol=1e-5)
+  np.testing.assert_allclose(rows["leftAlongside"], [1.0, -1.0, 0.5, 3.5], atol=1e-5)
+  # 400 m behind is clipped to the 150 m of "nobody there"; -3.5 - 0.2 = -3.7 m
+  np.testing.assert_allclose(rows["rightFollowing"], [1.0, -150.0, -1.0, -3.7], atol=1e-5)
+  np.testing.assert_allclose(rows["rightPreceding"], [0.0, 150.0, 0.0, 0.0], atol=1e-5)
 
 
 def test_short_history_uses_only_observed_steps():

@@ -22,6 +22,7 @@ from cvmdx_jax import checkpointing, ego_motion
 from cvmdx_jax import runs as runs_lib
 from cvmdx_jax.evaluation import report, scoring
 from cvmdx_jax.data import dataset
+from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.predict import IncompatibleRunsError, OutOfDistributionWarning, Predictor
 from cvmdx_jax.train import diffusion, loop, tokenizer
@@ -73,6 +74,24 @@ def test_report_has_every_method_subset_and_figure(runs):
   assert saved["cv"]["all"]["num_scenarios"] == 30
   assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
   assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
+
+
+def test_report_sampling_overrides_reach_the_predictor(runs):
+  """evaluate.py --sampler/--steps: the report samples with the override, and its mean
+  trajectory is the one a Predictor with that sampling gives."""
+  scenarios = dataset.load_split(runs / "data", "test")
+  scenarios = scenarios.take(balanced_indices(scenarios.label, 0, 6))
+  results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+                       data_dir=runs / "data", workdir=runs / "eval_ddim2", max_scenarios=6,
+                       ddpm_scenarios=0, sampling_overrides={"sampler": "ddim", "steps": 2})
+  meta = json.loads((runs / "eval_ddim2" / "metrics.json").read_text())["_meta"]
+  assert (meta["sampling"]["sampler"], meta["sampling"]["steps"]) == ("ddim", 2)
+  predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
+  predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
+      predictor.sampling, sampler="ddim", steps=2))
+  mean = predictor(scenarios, seed=0).prediction.mean
+  ade = np.linalg.norm(np.asarray(mean) - scenarios.future, axis=-1).mean()
+  np.testing.assert_allclose(results["cvmdx_mean"]["all"]["ade"], ade, rtol=1e-5)
   for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
     assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
   table = (runs / "eval" / "results.md").read_text()

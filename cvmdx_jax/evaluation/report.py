@@ -26,7 +26,7 @@ from cvmdx_jax.predict import Predictor
 @locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
-        figures_per_class: int = 3, sampling=None, suffix: str = "") -> dict:
+        figures_per_class: int = 3, sampling_overrides=None, suffix: str = "") -> dict:
   """Evaluates a trained cVMDx on `split` of the dataset in `data_dir`.
 
   Args:
@@ -39,7 +39,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     ddpm_scenarios: scenarios of the (100x slower) single-DDPM-sample baseline, a
       class-balanced subset of the evaluated ones (0 = skip it).
     figures_per_class: scenarios drawn per class in the prediction figures.
-    sampling: a `SamplingConfig` overriding the diffusion run's.
+    sampling_overrides: `SamplingConfig` fields set instead of the diffusion run's
+      (e.g. {"sampler": "ddim", "steps": 10}).
     suffix: appended to every file name (`metrics<suffix>.json`, ...), so that several
       splits can be reported into one directory.
 
@@ -47,7 +48,10 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     The metrics dict written to metrics.json.
   """
   scenarios = dataset_lib.load_split(data_dir, split)
-  predictor = Predictor.load(tokenizer_dir, diffusion_dir, sampling=sampling)
+  predictor = Predictor.load(tokenizer_dir, diffusion_dir)
+  if sampling_overrides:
+    predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
+        predictor.sampling, **sampling_overrides))
   if max_scenarios:
     scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
