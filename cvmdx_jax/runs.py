@@ -207,7 +207,7 @@ class Denoiser:
   def apply(self, x: jax.Array, t: jax.Array, q: jax.Array,
             cond: jax.Array | None = None) -> jax.Array:
     """v (B, 125, 2) of normalised controls x (B, 125, 2) at steps t (B,) for tokens q (B,)
-    (and, for an ego-conditioned run, ego-motion features cond (B, 13), `ego_motion`)."""
+    (and, for an ego-conditioned run, ego-motion features cond (B, ego_motion.NUM_FEATURES))."""
     return unet1d.apply_unet(self.graphdef, self.params, x, t, q, cond=cond)
 
 
@@ -295,11 +295,16 @@ def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
     FileNotFoundError: no config.json / model.json (not a diffusion run directory).
     CorruptRunError: config.json or model.json is corrupt.
     CheckpointMismatchError: no complete checkpoint, one of another model size, or a
-      corrupt one.
+      corrupt one; or a denoiser trained on another number of ego-motion features.
   """
   workdir = Path(workdir)
   config = _read_json(workdir / CONFIG_JSON, "diffusion")
   unet = to_dataclass(unet1d.UNetConfig, _read_json(workdir / MODEL_JSON, "diffusion")["unet"])
+  if unet.cond_dim not in (0, ego_motion.NUM_FEATURES):
+    raise CheckpointMismatchError(
+        f"{workdir}: the denoiser was trained on {unet.cond_dim} ego-motion features, this "
+        f"version of cvmdx_jax computes {ego_motion.NUM_FEATURES} (cvmdx_jax/ego_motion.py, "
+        "FEATURES); retrain it")
   params, fingerprint = _restore_ema(workdir, _abstract(unet1d.init_unet, unet))
   return Denoiser(params, unet1d.make_graphdef(unet), unet,
                   ml_collections.FrozenConfigDict(config),

@@ -240,6 +240,18 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   assert not (tmp_path / "bad").exists()
 
 
+def test_denoiser_of_another_feature_count_is_refused(runs, tmp_path, monkeypatch):
+  """A run trained when ego_motion had another feature table (13 before the neighbours)
+  is refused by name instead of failing inside the U-Net."""
+  diff = diffusion_config.get_config("tiny")
+  diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
+  diff.diffusion.conditioning = "ego_film"
+  diffusion.train_and_evaluate(diff, tmp_path / "ego")
+  monkeypatch.setattr(ego_motion, "NUM_FEATURES", ego_motion.NUM_FEATURES + 1)
+  with pytest.raises(checkpointing.CheckpointMismatchError, match="ego-motion features"):
+    Predictor.load(runs / "tokenizer", tmp_path / "ego")
+
+
 def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
   out = tmp_path / "eval"
   with pytest.raises(ValueError, match="validation"):
