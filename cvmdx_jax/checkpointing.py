@@ -27,7 +27,7 @@ import jax
 import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
-from cvmdx_jax import atomic
+from cvmdx_jax import atomic, checksums
 
 # orbax writes this file into the temporary directory just before the final rename; a
 # step directory without it was not finished by orbax (or was tampered with).
@@ -119,7 +119,7 @@ def _leaf_bytes(x: Any) -> bytes:
 def leaf_digests(tree: Any) -> dict[str, str]:
   """{leaf path ('a/0/b'): sha256 hex of the leaf's bytes} of a pytree of arrays."""
   leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-  return {_path_key(p): hashlib.sha256(_leaf_bytes(x)).hexdigest() for p, x in leaves}
+  return {_path_key(p): checksums.sha256(_leaf_bytes(x)) for p, x in leaves}
 
 
 def tree_digest(tree: Any) -> str:
@@ -133,7 +133,7 @@ def tree_digest(tree: Any) -> str:
 
 
 def _file_digests(step_dir: Path) -> dict[str, str]:
-  return {str(p.relative_to(step_dir)): hashlib.sha256(p.read_bytes()).hexdigest()
+  return {str(p.relative_to(step_dir)): checksums.sha256(p.read_bytes())
           for p in sorted(step_dir.rglob("*")) if p.is_file() and p.name != _FILE_DIGESTS}
 
 

@@ -76,6 +76,8 @@ RECENT_STEPS = constants.FRAME_RATE_HZ + 1  # samples spanning the last second
 MAX_GAP_M = 150.0
 _ACCEL, _YAW_RATE = 1, 3
 _FOLLOWING, _PRECEDING = (constants.VEHICLE_SLOTS.index(s) for s in ("following", "preceding"))
+_NEIGHBOUR_SLOTS = tuple(constants.VEHICLE_SLOTS.index(slot) for slot, _ in NEIGHBOURS)
+_ABSENT_DX = tuple(MAX_GAP_M * side for _, side in NEIGHBOURS)  # m, where one is absent
 
 
 def _slope(values, weights):
@@ -121,14 +123,12 @@ def ego_features(xi, mask):
       jnp.sum(lane_present, -1), 1), 0.0)
   leader = mask[:, _PRECEDING, -1]
   lead = xi[:, _PRECEDING, -1]
-  slots = [constants.VEHICLE_SLOTS.index(slot) for slot, _ in NEIGHBOURS]
-  present = mask[:, slots, -1]  # (M, 7)
-  other = xi[:, slots, -1]  # (M, 7, 4)
-  absent_dx = MAX_GAP_M * jnp.asarray([side for _, side in NEIGHBOURS], jnp.float32)
+  present = mask[:, _NEIGHBOUR_SLOTS, -1]  # (M, 7)
+  other = xi[:, _NEIGHBOUR_SLOTS, -1]  # (M, 7, 4)
   neighbours = jnp.stack([
       present.astype(jnp.float32),
       jnp.where(present, jnp.clip(other[..., 0] - ego[:, -1:, 0], -MAX_GAP_M, MAX_GAP_M),
-                absent_dx),
+                jnp.asarray(_ABSENT_DX, jnp.float32)),
       jnp.where(present, other[..., 2] - ego[:, -1:, 2], 0.0),
       jnp.where(present, other[..., 1] - ego[:, -1:, 1], 0.0),
   ], axis=-1).reshape(len(xi), -1)

@@ -77,7 +77,7 @@ def brier_min_fde(hyps, probs, gt, valid):
   hypothesis that attains minFDE_K. hyps (..., K, T, 2), probs and valid (..., K),
   gt (..., T, 2) -> (...,)."""
   err = _per_hypothesis(fde, hyps, gt, valid)
-  best = closest_final(hyps, gt, valid)[..., None]
+  best = jnp.argmin(err, axis=-1)[..., None]  # `closest_final`, from err in hand
   p = jnp.take_along_axis(probs, best, axis=-1)[..., 0]
   return jnp.take_along_axis(err, best, axis=-1)[..., 0] + (1.0 - p) ** 2
 
