@@ -110,9 +110,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.attention_levels = (3,)
     config.model.groups = 8
     config.train.batch_size = 128
-    # 90 (val mean-of-9 ADE 1.110) rather than 60 (1.134): what the sampler's 6 instead of
-    # 20 evaluations per sample saved in `make demo`'s evaluation (BUILD_NOTES.md)
-    config.train.num_epochs = 90
+    # 60: `make demo` within 15 min on the slowest 2-core machine measured (90 epochs,
+    # val mean-of-9 ADE 1.110 vs 1.134 for 60, took it to 21.6 min there; BUILD_NOTES.md)
+    config.train.num_epochs = 60
     config.train.learning_rate = 1e-3
     config.train.warmup_steps = 200
     config.train.ema_decay = 0.999
