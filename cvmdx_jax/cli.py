@@ -30,6 +30,8 @@ from ml_collections import config_flags
 # documented for outside use, but not exported by the package
 from ml_collections.config_flags.config_flags import is_config_flag
 
+from cvmdx_jax import host_allocator
+
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
 _REPO = Path(__file__).resolve().parents[1]
@@ -72,7 +74,12 @@ def is_user_error(exc: BaseException) -> bool:
 
 
 def run(main: Callable[[list[str]], object]) -> None:
-  """`absl.app.run(main)` with the user-error handling of the module docstring."""
+  """`absl.app.run(main)` with the user-error handling of the module docstring, in a
+  process re-executed once with the allocator of `host_allocator` (Linux)."""
+  try:
+    host_allocator.reexec_with_allocator()
+  except ValueError as e:
+    fail(str(e))
 
   def guarded(argv):
     try:

@@ -1,0 +1,75 @@
+"""The entry points' allocator choice (`cvmdx_jax.host_allocator`) and the re-execution."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cvmdx_jax import host_allocator as ha
+
+REPO = Path(__file__).resolve().parents[1]
+JE = "/opt/lib/libjemalloc.so.2"
+
+
+def test_jemalloc_preferred_and_existing_settings_kept():
+  env = ha.allocator_environment({"LD_PRELOAD": "/x/a.so", "MALLOC_CONF": "narenas:2", "K": "v"},
+                                 "linux", exists=lambda p: p == ha.JEMALLOC_PATHS[0])
+  assert env["LD_PRELOAD"] == f"{ha.JEMALLOC_PATHS[0]}:/x/a.so"
+  assert env["MALLOC_CONF"] == "dirty_decay_ms:-1,muzzy_decay_ms:-1,narenas:2"
+  assert env[ha.APPLIED] == "1" and env["K"] == "v" and "GLIBC_TUNABLES" not in env
+
+
+def test_glibc_tunables_without_jemalloc():
+  env = ha.allocator_environment({"GLIBC_TUNABLES": "glibc.cpu.x86_shstk=on"}, "linux",
+                                 exists=lambda p: False)
+  assert env["GLIBC_TUNABLES"].split(":") == [
+      "glibc.malloc.mmap_max=0", "glibc.malloc.trim_threshold=68719476736",
+      "glibc.malloc.arena_max=1", "glibc.cpu.x86_shstk=on"]
+  assert "LD_PRELOAD" not in env
+
+
+def test_explicit_jemalloc_path():
+  env = ha.allocator_environment({ha.JEMALLOC_ENV: JE}, "linux", exists=lambda p: p == JE)
+  assert env["LD_PRELOAD"] == JE
+  with pytest.raises(ValueError, match=ha.JEMALLOC_ENV):
+    ha.allocator_environment({ha.JEMALLOC_ENV: JE}, "linux", exists=lambda p: False)
+
+
+@pytest.mark.parametrize("environ, platform", [
+    ({ha.OPT_OUT: "system"}, "linux"), ({ha.APPLIED: "1"}, "linux"), ({}, "darwin")])
+def test_left_alone(environ, platform):
+  assert ha.allocator_environment(environ, platform, exists=lambda p: True) is None
+
+
+def test_bad_choice_named():
+  with pytest.raises(ValueError, match="CVMDX_ALLOCATOR='jemalloc'"):
+    ha.allocator_environment({ha.OPT_OUT: "jemalloc"}, "linux")
+
+
+_SCRIPT = """
+import os, sys
+from cvmdx_jax import cli
+def main(argv):
+  print(os.environ.get("CVMDX_ALLOCATOR_APPLIED"), os.environ.get("GLIBC_TUNABLES"), argv[1:])
+cli.run(main)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the re-execution is Linux only")
+def test_entry_point_reexecutes_once_with_its_arguments(tmp_path):
+  script = tmp_path / "entry.py"
+  script.write_text(_SCRIPT)
+  env = {k: v for k, v in os.environ.items() if k not in (ha.OPT_OUT, ha.APPLIED)}
+  env.update(PYTHONPATH=str(REPO), CVMDX_JEMALLOC="", JAX_PLATFORMS="cpu")
+  run = lambda extra: subprocess.run([sys.executable, str(script), "a", "b"], capture_output=True,
+                                     text=True, env={**env, **extra}, timeout=120)
+  proc = run({})  # jemalloc where installed, else the glibc tunables
+  assert proc.returncode == 0, proc.stderr
+  applied, _, argv = proc.stdout.strip().partition(" ")
+  assert applied == "1" and argv.endswith("['a', 'b']")
+  proc = run({ha.OPT_OUT: "system"})
+  assert proc.stdout.startswith("None None ['a', 'b']")
+  proc = run({ha.OPT_OUT: "bogus"})
+  assert proc.returncode == 2 and "error: CVMDX_ALLOCATOR='bogus'" in proc.stderr
