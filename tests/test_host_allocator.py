@@ -49,7 +49,7 @@ def test_bad_choice_named():
 
 
 _SCRIPT = """
-import os, sys
+import os
 from cvmdx_jax import cli
 def main(argv):
   print(os.environ.get("CVMDX_ALLOCATOR_APPLIED"), os.environ.get("GLIBC_TUNABLES"), argv[1:])
