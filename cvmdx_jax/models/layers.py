@@ -12,6 +12,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from cvmdx_jax.models.group_norm import GroupNorm
+
 
 def timestep_embedding(t, dim: int, max_period: float = 10000.0):
   """Sinusoidal embedding of integer timesteps t (B,) -> (B, dim)."""
@@ -24,9 +26,8 @@ def timestep_embedding(t, dim: int, max_period: float = 10000.0):
 GROUPNORM_EPSILON = 1e-5  # the official code's (PyTorch's) GroupNorm epsilon
 
 
-def group_norm(channels: int, groups: int, rngs):
-  return nnx.GroupNorm(channels, num_groups=min(groups, channels), epsilon=GROUPNORM_EPSILON,
-                       rngs=rngs)
+def group_norm(channels: int, groups: int) -> GroupNorm:
+  return GroupNorm(channels, min(groups, channels), GROUPNORM_EPSILON)
 
 
 class ResBlock(nnx.Module):
@@ -35,10 +36,10 @@ class ResBlock(nnx.Module):
 
   def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
                *, rngs: nnx.Rngs):
-    self.norm1 = group_norm(in_ch, groups, rngs)
+    self.norm1 = group_norm(in_ch, groups)
     self.conv1 = nnx.Conv(in_ch, out_ch, kernel_size=(3,), rngs=rngs)
     self.film = nnx.Linear(emb_dim, 2 * out_ch, rngs=rngs)
-    self.norm2 = group_norm(out_ch, groups, rngs)
+    self.norm2 = group_norm(out_ch, groups)
     self.dropout = nnx.Dropout(dropout)
     self.conv2 = nnx.Conv(out_ch, out_ch, kernel_size=(3,), kernel_init=nnx.initializers.zeros,
                           rngs=rngs)
@@ -46,9 +47,9 @@ class ResBlock(nnx.Module):
                  else None)
 
   def __call__(self, x, emb, dropout_key=None):
-    h = self.conv1(jax.nn.silu(self.norm1(x)))
-    scale, shift = jnp.split(self.film(jax.nn.silu(emb))[:, None, :], 2, axis=-1)
-    h = jax.nn.silu(self.norm2(h) * (1.0 + scale) + shift)
+    h = self.conv1(self.norm1.silu(x))
+    scale, shift = jnp.split(self.film(jax.nn.silu(emb)), 2, axis=-1)  # (B, C) each
+    h = self.norm2.silu(h, 1.0 + scale, shift)
     if dropout_key is not None:
       h = self.dropout(h, deterministic=False, rngs=dropout_key)
     h = self.conv2(h)
@@ -72,7 +73,7 @@ class AttentionBlock(nnx.Module):
   """Pre-norm multi-head self-attention over the sequence axis, residual."""
 
   def __init__(self, channels: int, num_heads: int, groups: int, *, rngs: nnx.Rngs):
-    self.norm = group_norm(channels, groups, rngs)
+    self.norm = group_norm(channels, groups)
     self.attn = nnx.MultiHeadAttention(num_heads=num_heads, in_features=channels,
                                        decode=False, rngs=rngs)
 
@@ -93,10 +94,26 @@ class Downsample(nnx.Module):
 
 
 class Upsample(nnx.Module):
-  """Nearest-neighbour repeat then convolution, L -> 2 L."""
+  """Nearest-neighbour repeat then a width-3 convolution, L -> 2 L.
+
+  Computed without the repeat: with kernel taps (w0, w1, w2), output 2i is
+  w0 x[i-1] + (w1 + w2) x[i] and output 2i+1 is (w0 + w1) x[i] + w2 x[i+1]. One width-3
+  convolution of x with both phases' kernels side by side, (w0, w1 + w2, 0) and
+  (0, w0 + w1, w2), gives (B, L, 2 C), which is the interleaved (B, 2 L, C) in memory
+  (XLA:CPU: a width-2 convolution is ~100x slower, and the repeated sequence costs a
+  copy). Parameters are those of the convolution of the repeated sequence (`conv`, as
+  in the official code).
+  """
 
   def __init__(self, channels: int, *, rngs: nnx.Rngs):
     self.conv = nnx.Conv(channels, channels, kernel_size=(3,), rngs=rngs)
 
   def __call__(self, x):
-    return self.conv(jnp.repeat(x, 2, axis=1))
+    w0, w1, w2 = self.conv.kernel[...]
+    zero = jnp.zeros_like(w0)
+    kernel = jnp.concatenate([jnp.stack([w0, w1 + w2, zero]),     # output 2i
+                              jnp.stack([zero, w0 + w1, w2])], -1)  # output 2i + 1
+    y = jax.lax.conv_general_dilated(x, kernel, (1,), ((1, 1),),
+                                     dimension_numbers=("NWC", "WIO", "NWC"))  # (B, L, 2C)
+    b, length, channels = x.shape
+    return y.reshape(b, 2 * length, channels) + self.conv.bias[...]

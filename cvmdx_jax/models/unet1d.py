@@ -120,7 +120,7 @@ class UNet1D(nnx.Module):
       if level > 0:
         up_samples.append(Upsample(cur, rngs=rngs))
     self.up_blocks, self.up_samples = nnx.List(up_blocks), nnx.List(up_samples)
-    self.norm_out = group_norm(cur, config.groups, rngs)
+    self.norm_out = group_norm(cur, config.groups)
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
 
@@ -155,7 +155,7 @@ class UNet1D(nnx.Module):
         h = next(blocks)(jnp.concatenate([h, skips.pop()], axis=-1), emb, key())
       if level > 0:
         h = next(samples)(h)
-    out = self.conv_out(jax.nn.silu(self.norm_out(h)))
+    out = self.conv_out(self.norm_out.silu(h))
     return out[:, left:left + length]
 
 

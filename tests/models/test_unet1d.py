@@ -120,7 +120,7 @@ def test_downsampling_is_centred_on_even_inputs():
 
 
 def test_group_norm_epsilon_is_the_official_1e5():
-  norm = layers.group_norm(4, 2, nnx.Rngs(0))
+  norm = layers.group_norm(4, 2)
   x = jnp.array([[[0.0, 0.0, 0.0, 0.0], [2e-3, 2e-3, 2e-3, 2e-3]]])  # (1, 2, 4): var 1e-6
   want = np.array([-1e-3, 1e-3]) / np.sqrt(1e-6 + 1e-5)  # per group, (x - mean) / sqrt(var + eps)
   np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)
