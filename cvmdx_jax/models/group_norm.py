@@ -34,11 +34,15 @@ def _group_sum(v, groups: int):
   return v.reshape(v.shape[0], groups, -1).sum(-1)
 
 
+def _check_groups(channels: int, groups: int, who: str) -> None:
+  if channels % groups:
+    raise ValueError(f"{who}: {channels} channels are not divisible by {groups} groups")
+
+
 def _statistics(x, groups: int, epsilon: float):
   """Per-example, per-group mean and 1 / std of x (B, L, C) -> (B, G) each."""
   length, channels = x.shape[1:]
-  if channels % groups:
-    raise ValueError(f"group_norm: {channels} channels are not divisible by {groups} groups")
+  _check_groups(channels, groups, "group_norm")
   n = length * (channels // groups)
   mean = _group_sum(jnp.sum(x, axis=1), groups) / n
   var = jnp.maximum(_group_sum(jnp.sum(x * x, axis=1), groups) / n - mean * mean, 0.0)
@@ -52,12 +56,12 @@ def _coefficients(scale, bias, mean, rstd):
   return a, bias - _expand(mean, gs) * a
 
 
-def _backward_coefficients(s1, s2, x_shape, scale, mean, rstd):
+def _backward_coefficients(s1, s2, length: int, scale, mean, rstd):
   """Gradients of GroupNorm from s1 = sum_L dn and s2 = sum_L dn x, each (B, C), where
   dn (B, L, C) is the cotangent of its output: (d_scale, d_bias, k_dn, k_x, k_1) with
   dx = dn k_dn + x k_x + k_1 (the k's (B, C))."""
   groups, gs = mean.shape[1], scale.shape[0] // mean.shape[1]
-  n = x_shape[1] * gs
+  n = length * gs
   mean_c, rstd_c = _expand(mean, gs), _expand(rstd, gs)
   d_scale = jnp.sum(rstd_c * (s2 - mean_c * s1), axis=0)
   d_bias = jnp.sum(s1, axis=0)
@@ -90,7 +94,7 @@ def _group_norm_backward(groups, epsilon, residuals, dy):
   del groups, epsilon  # in mean and rstd already
   x, scale, mean, rstd = residuals
   d_scale, d_bias, k_dn, k_x, k_1 = _backward_coefficients(
-      jnp.sum(dy, axis=1), jnp.sum(dy * x, axis=1), x.shape, scale, mean, rstd)
+      jnp.sum(dy, axis=1), jnp.sum(dy * x, axis=1), x.shape[1], scale, mean, rstd)
   return dy * _bcast(k_dn) + x * _bcast(k_x) + _bcast(k_1), d_scale, d_bias
 
 
@@ -104,24 +108,29 @@ def group_norm_silu(x, scale, bias, mod_scale, mod_shift, groups: int, epsilon: 
   return _group_norm_silu_forward(x, scale, bias, mod_scale, mod_shift, groups, epsilon)[0]
 
 
+def _modulated(x, a, shift, mod_scale, mod_shift):
+  """group_norm(x) m + c from GroupNorm's coefficients (a, shift) -> (B, L, C)."""
+  return x * _bcast(a * mod_scale) + _bcast(shift * mod_scale + mod_shift)
+
+
 def _group_norm_silu_forward(x, scale, bias, mod_scale, mod_shift, groups, epsilon):
   mean, rstd = _statistics(x, groups, epsilon)
   a, shift = _coefficients(scale, bias, mean, rstd)
-  u = x * _bcast(a * mod_scale) + _bcast(shift * mod_scale + mod_shift)
-  return jax.nn.silu(u), (x, scale, mod_scale, mod_shift, mean, rstd, a, shift)
+  return (jax.nn.silu(_modulated(x, a, shift, mod_scale, mod_shift)),
+          (x, scale, mod_scale, mod_shift, mean, rstd, a, shift))
 
 
 def _group_norm_silu_backward(groups, epsilon, residuals, dy):
   del groups, epsilon
   x, scale, mod_scale, mod_shift, mean, rstd, a, shift = residuals
-  u = x * _bcast(a * mod_scale) + _bcast(shift * mod_scale + mod_shift)
+  u = _modulated(x, a, shift, mod_scale, mod_shift)
   sig = jax.nn.sigmoid(u)
   du = dy * sig * (1.0 + u * (1.0 - sig))                                  # (B, L, C)
   r1, r2 = jnp.sum(du, axis=1), jnp.sum(du * x, axis=1)                  # (B, C)
   d_mod_scale, d_mod_shift = a * r2 + shift * r1, r1                    # sum_L du xhat', du
   # the GroupNorm output's cotangent is dn = du m
   d_scale, d_bias, k_dn, k_x, k_1 = _backward_coefficients(
-      mod_scale * r1, mod_scale * r2, x.shape, scale, mean, rstd)
+      mod_scale * r1, mod_scale * r2, x.shape[1], scale, mean, rstd)
   dx = du * _bcast(k_dn * mod_scale) + x * _bcast(k_x) + _bcast(k_1)
   return dx, d_scale, d_bias, d_mod_scale, d_mod_shift
 
@@ -134,9 +143,7 @@ class GroupNorm(nnx.Module):
   `nnx.GroupNorm`, over inputs (B, L, C); `silu` gives silu(norm(x) m + c)."""
 
   def __init__(self, num_features: int, num_groups: int, epsilon: float):
-    if num_features % num_groups:
-      raise ValueError(f"GroupNorm: {num_features} channels are not divisible by "
-                       f"{num_groups} groups")
+    _check_groups(num_features, num_groups, "GroupNorm")
     self.num_groups, self.epsilon = num_groups, epsilon
     self.scale = nnx.Param(jnp.ones((num_features,)))
     self.bias = nnx.Param(jnp.zeros((num_features,)))
