@@ -79,7 +79,7 @@ def unet_config(config, num_tokens: int) -> unet1d.UNetConfig:
 def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetConfig,
                           dataset_id: str, tokens_meta: dict) -> dict:
   """What a denoiser checkpoint belongs to: model shape, dataset, tokeniser checkpoint
-  and (beyond the paper) the ego-motion conditioning."""
+  and (beyond the paper) the ego-motion conditioning and the class weights."""
   checkpoint = tokens_meta.get("checkpoint", {})
   out = {"model": dataclasses.asdict(unet), "num_diffusion_steps": config.diffusion.num_steps,
          "control_scale": list(config.diffusion.control_scale),
@@ -91,6 +91,9 @@ def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetCo
   if conditioning(config) != "token":  # token-only fingerprints stay as they were
     out["conditioning"] = {"name": conditioning(config), "features": ego_motion.NUM_FEATURES,
                            "residual_decay_s": list(config.diffusion.residual_decay_s)}
+  class_weights = [float(w) for w in config.diffusion.get("class_weights", (1.0, 1.0, 1.0))]
+  if class_weights != [1.0, 1.0, 1.0]:  # balanced-class fingerprints stay as they were
+    out["class_weights"] = class_weights
   return out
 
 

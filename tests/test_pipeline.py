@@ -312,3 +312,38 @@ def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, mon
   out = predictor(dataset.load_split(runs / "data", "test").take(np.arange(2)), seed=0)
   assert out.prediction.trajectories.shape == (2, 9, 125, 2)
   assert np.isfinite(out.prediction.trajectories).all()
+
+
+def test_class_weights_weight_each_training_scenario_by_its_class(runs):
+  diff = diffusion_config.get_config("tiny")
+  diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
+  plain, num_tokens, dataset_id, meta = diffusion.training_data(diff)
+  assert "class_weight" not in plain  # the paper's balanced classes: no extra array
+  fingerprint = runs_lib.diffusion_fingerprint(diff, runs_lib.unet_config(diff, num_tokens),
+                                               dataset_id, meta)
+  assert "class_weights" not in fingerprint
+  diff.diffusion.class_weights = (3.0, 1.0, 0.5)
+  data, *_ = diffusion.training_data(diff)
+  labels = dataset.load_split(runs / "data", "train").label
+  np.testing.assert_array_equal(data["class_weight"], np.array([3.0, 1.0, 0.5])[labels])
+  assert runs_lib.diffusion_fingerprint(diff, runs_lib.unet_config(diff, num_tokens), dataset_id,
+                                        meta)["class_weights"] == [3.0, 1.0, 0.5]
+  # the step multiplies the loop's padding weight by the class weight: a zero class weight
+  # removes a row from the loss exactly as padding does
+  cfg = runs_lib.unet_config(diff, num_tokens)
+  _, init_fn, step_fn = diffusion.init_and_step(diff, cfg, total_steps=10)
+  state = init_fn(jax.random.key(0))
+  rows = np.arange(8)
+  batch = {"x0": jnp.asarray(data["x0"][rows]), "q": jnp.asarray(data["q"][rows])}
+  keep = jnp.asarray(np.arange(8) % 3 != 0, jnp.float32)
+  step = jax.jit(step_fn)
+  _, padded = step(state, {**batch, "weight": keep}, jax.random.key(1))
+  _, weighted = step(state, {**batch, "weight": jnp.ones(8), "class_weight": keep},
+                     jax.random.key(1))
+  _, unweighted = step(state, {**batch, "weight": jnp.ones(8)}, jax.random.key(1))
+  np.testing.assert_allclose(weighted["loss"], padded["loss"], rtol=1e-6)
+  assert abs(float(weighted["loss"]) - float(unweighted["loss"])) > 1e-6
+  for bad in [(1.0, 1.0), (1.0, 0.0, 1.0), (1.0, float("nan"), 1.0)]:
+    diff.diffusion.class_weights = bad
+    with pytest.raises(ValueError, match="diffusion.class_weights"):
+      diffusion.training_data(diff)

@@ -18,7 +18,8 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import ego_motion, locking, normalization, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import constants, ego_motion, locking, normalization, runs, sharding
+from cvmdx_jax import tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d
@@ -59,7 +60,8 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
       ego = batch["ego"] if cfg.cond_dim else None
       model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop, ego)
       return v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
-                    cond_drop_prob=cond_drop_prob, weight=batch["weight"])
+                    cond_drop_prob=cond_drop_prob,
+                    weight=batch["weight"] * batch.get("class_weight", 1.0))
 
     loss, grads = jax.value_and_grad(loss_fn)(state["params"])
     updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
@@ -73,8 +75,21 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
   return step_fn
 
 
+def class_weight_table(config) -> np.ndarray:
+  """`diffusion.class_weights` as a (3,) float32 array (keep lane, lcr, lcl), checked."""
+  weights = np.asarray(config.diffusion.get("class_weights", (1.0, 1.0, 1.0)), np.float32)
+  if weights.shape != (len(constants.CLASS_NAMES),) or not np.all(np.isfinite(weights)) \
+      or np.any(weights <= 0):
+    raise ValueError(f"diffusion.class_weights={tuple(np.atleast_1d(weights).tolist())}: need "
+                     f"{len(constants.CLASS_NAMES)} positive finite weights, one per class "
+                     f"{constants.CLASS_NAMES}")
+  return weights
+
+
 def training_data(config) -> tuple[dict, int, str, dict]:
-  """(arrays {x0, q[, ego]}, Q, dataset id, tokens metadata) of the training split."""
+  """(arrays {x0, q[, ego][, class_weight]}, Q, dataset id, tokens metadata) of the
+  training split; `class_weight` (M,) only where `diffusion.class_weights` is not all 1."""
+  class_weights = class_weight_table(config)
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
@@ -87,6 +102,8 @@ def training_data(config) -> tuple[dict, int, str, dict]:
       controls = controls - ego_motion.residual_controls(
           data["ego"], tuple(config.diffusion.residual_decay_s))
   data["x0"] = np.asarray(normalization.normalize_controls(controls, scale), np.float32)
+  if np.any(class_weights != 1.0):
+    data["class_weight"] = class_weights[scenarios.label]
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 
