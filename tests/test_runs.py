@@ -48,6 +48,8 @@ def test_run_configs_become_the_model_and_sampling_settings():
   assert sampling.control_scale == (4.0, 0.1) and sampling.clip_x0 == 1.0
   assert sampling.guidance.w_max_base == 0.5
   assert (sampling.sampler, sampling.steps) == ("dpmpp2m", 3)  # chosen on val (BUILD_NOTES)
+  assert tuple(demo.diffusion.class_weights) == (3.0, 1.0, 1.0)  # chosen on val
+  assert tuple(diffusion_config.get_config("paper").diffusion.class_weights) == (1.0, 1.0, 1.0)
   demo.sampling.clip_x0 = 0.0  # 0 = no clipping
   assert runs.sampling_config(demo).clip_x0 is None
   unet = to_dataclass(unet1d.UNetConfig, demo.model, num_tokens=60)
