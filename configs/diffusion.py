@@ -130,7 +130,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # on val, mean-of-9 ADE 1.20 vs 1.46 token-only (DDIM-10) with the ego's own features;
     # adding the neighbours' 1.17 -> 1.13 (dpmpp2m; BUILD_NOTES.md, "Prediction quality")
     config.diffusion.conditioning = "ego_film"
-    # keep-lane scenarios weigh 3x in the loss: with balanced classes ~15 % of the samples
+    # keep-lane scenarios weigh 3x in the loss: with balanced classes ~18 % of the samples
     # of keep-lane scenarios changed lanes and the mean of 9 lost to constant velocity on
     # keep-lane; chosen on val from 1 / 2 / 3 / 5 (BUILD_NOTES.md, "Class weights")
     config.diffusion.class_weights = (3.0, 1.0, 1.0)
