@@ -32,6 +32,7 @@ dicts (leaves `<path>/value`) still load.
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
 
@@ -40,7 +41,7 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from cvmdx_jax import checkpointing, checksums, ego_motion, sharding, tokens
+from cvmdx_jax import checkpointing, checksums, constants, ego_motion, sharding, tokens
 from cvmdx_jax.checkpointing import CheckpointMismatchError
 from cvmdx_jax.checksums import CorruptRunError
 from cvmdx_jax.config_dataclass import to_dataclass
@@ -69,6 +70,23 @@ def conditioning(config) -> str:
   return ego_motion.check_conditioning(config.diffusion.get("conditioning", "token"))
 
 
+def class_weights(config) -> tuple[float, ...] | None:
+  """The run's `diffusion.class_weights` (keep lane, lcr, lcl), checked; None where all are
+  1 (the paper's balanced classes, also runs made before the field existed).
+
+  Raises:
+    ValueError: not one positive finite weight per class.
+  """
+  given = config.diffusion.get("class_weights")
+  if given is None:
+    return None
+  weights = tuple(float(w) for w in given)
+  if len(weights) != len(constants.CLASS_NAMES) or not all(0 < w < math.inf for w in weights):
+    raise ValueError(f"diffusion.class_weights={weights}: need {len(constants.CLASS_NAMES)} "
+                     f"positive finite weights, one per class {constants.CLASS_NAMES}")
+  return None if all(w == 1.0 for w in weights) else weights
+
+
 def unet_config(config, num_tokens: int) -> unet1d.UNetConfig:
   """The `UNetConfig` of a diffusion config (`config.model`, conditioning width)."""
   cond_dim = ego_motion.NUM_FEATURES if ego_motion.uses_film(conditioning(config)) else 0
@@ -91,9 +109,9 @@ def diffusion_fingerprint(config: ml_collections.ConfigDict, unet: unet1d.UNetCo
   if conditioning(config) != "token":  # token-only fingerprints stay as they were
     out["conditioning"] = {"name": conditioning(config), "features": ego_motion.NUM_FEATURES,
                            "residual_decay_s": list(config.diffusion.residual_decay_s)}
-  class_weights = [float(w) for w in config.diffusion.get("class_weights", (1.0, 1.0, 1.0))]
-  if class_weights != [1.0, 1.0, 1.0]:  # balanced-class fingerprints stay as they were
-    out["class_weights"] = class_weights
+  weights = class_weights(config)
+  if weights:  # balanced-class fingerprints stay as they were
+    out["class_weights"] = list(weights)
   return out
 
 

@@ -18,8 +18,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import constants, ego_motion, locking, normalization, runs, sharding
-from cvmdx_jax import tokens as tokens_lib
+from cvmdx_jax import ego_motion, locking, normalization, runs, sharding, tokens as tokens_lib
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d
@@ -75,21 +74,10 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
   return step_fn
 
 
-def class_weight_table(config) -> np.ndarray:
-  """`diffusion.class_weights` as a (3,) float32 array (keep lane, lcr, lcl), checked."""
-  weights = np.asarray(config.diffusion.get("class_weights", (1.0, 1.0, 1.0)), np.float32)
-  if weights.shape != (len(constants.CLASS_NAMES),) or not np.all(np.isfinite(weights)) \
-      or np.any(weights <= 0):
-    raise ValueError(f"diffusion.class_weights={tuple(np.atleast_1d(weights).tolist())}: need "
-                     f"{len(constants.CLASS_NAMES)} positive finite weights, one per class "
-                     f"{constants.CLASS_NAMES}")
-  return weights
-
-
 def training_data(config) -> tuple[dict, int, str, dict]:
   """(arrays {x0, q[, ego][, class_weight]}, Q, dataset id, tokens metadata) of the
   training split; `class_weight` (M,) only where `diffusion.class_weights` is not all 1."""
-  class_weights = class_weight_table(config)
+  class_weights = runs.class_weights(config)
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
@@ -102,8 +90,8 @@ def training_data(config) -> tuple[dict, int, str, dict]:
       controls = controls - ego_motion.residual_controls(
           data["ego"], tuple(config.diffusion.residual_decay_s))
   data["x0"] = np.asarray(normalization.normalize_controls(controls, scale), np.float32)
-  if np.any(class_weights != 1.0):
-    data["class_weight"] = class_weights[scenarios.label]
+  if class_weights:
+    data["class_weight"] = np.asarray(class_weights, np.float32)[scenarios.label]
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 
