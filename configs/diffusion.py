@@ -114,9 +114,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.attention_levels = (3,)
     config.model.groups = 8
     config.train.batch_size = 128
-    # 60: `make demo` within 15 min on the slowest 2-core machine measured (90 epochs,
-    # val mean-of-9 ADE 1.110 vs 1.134 for 60, took it to 21.6 min there; BUILD_NOTES.md)
-    config.train.num_epochs = 60
+    # 30 over the 12 train recordings of dataset `:small` (~1,700 steps, as 60 epochs over
+    # its former 6): `make demo` within 15 min on the slowest 2-core machine measured (more
+    # steps helped on val but took it to 21.6 min there; BUILD_NOTES.md)
+    config.train.num_epochs = 30
     config.train.learning_rate = 1e-3
     config.train.warmup_steps = 200
     config.train.ema_decay = 0.999

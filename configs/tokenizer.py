@@ -4,7 +4,7 @@ Run:
   PYTHONPATH=. .venv/bin/python experiments/train_tokenizer.py \
       --config=configs/tokenizer.py --workdir=runs/tokenizer
 Presets after the path: `:tiny` (seconds, for tests), `:demo` (CPU-sized, a few minutes on
-2 cores on the ~4k-scenario small SUMO dataset), `:paper` (the paper's batch 64, lr 4.5e-6,
+2 cores on the ~7k-train-scenario small SUMO dataset), `:paper` (the paper's batch 64, lr 4.5e-6,
 1200 epochs); no preset is the default. Shorthands: `:q=60,quantizer=vq`. Any field can
 be overridden with `--config.<section>.<field>=<value>`, e.g.
 `--config.quantizer.codebook_size=90 --config.train.num_epochs=50`. Sections: `model`
