@@ -33,7 +33,7 @@ def test_default_sizes_of_the_presets():
   counts = {preset: {k: len(v) for k, v in sumo_plan.split_ids(_sumo(preset)).items()}
             for preset in ("", "small", "tiny")}
   assert counts[""] == {"train": 10, "val": 2, "test": 3, "test_ood": 2}
-  assert counts["small"] == {"train": 6, "val": 2, "test": 2, "test_ood": 1}
+  assert counts["small"] == {"train": 12, "val": 2, "test": 2, "test_ood": 1}
 
 
 @pytest.mark.parametrize("preset", ["", "small", "tiny"])
