@@ -106,7 +106,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   if arg.small:
     # 12 train recordings (6 until 2026-11-23): with the demo's steps unchanged (30 epochs
-    # instead of 60), val mean-of-9 ADE 0.86 against 0.90 (BUILD_NOTES.md, "Twice the roads")
+    # instead of 60), val mean-of-9 ADE 0.87 against 0.90 over three seeds (BUILD_NOTES.md,
+    # "Twice the roads")
     s.recordings = ml_collections.ConfigDict(
         {"train": 12, "val": 2, "test": 2, "test_ood": 1})
     s.duration_s = 120.0
