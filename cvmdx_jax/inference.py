@@ -57,7 +57,7 @@ class SamplingConfig:
   clip_x0: float | None = 1.0
   control_scale: tuple[float, float] = normalization.PAPER_SCALE
   conditioning: str = "token"
-  residual_decay_s: tuple[float, float] = (1.0, 0.1)
+  residual_decay_s: tuple[float, float] = (3.0, 0.1)
   guidance: GuidanceConfig = GuidanceConfig()
   hypotheses: HypothesisConfig = HypothesisConfig()
 
