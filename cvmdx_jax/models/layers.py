@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from cvmdx_jax.models import winograd
 from cvmdx_jax.models.group_norm import GroupNorm
 
 
@@ -28,6 +29,11 @@ GROUPNORM_EPSILON = 1e-5  # the official code's (PyTorch's) GroupNorm epsilon
 
 def group_norm(channels: int, groups: int) -> GroupNorm:
   return GroupNorm(channels, min(groups, channels), GROUPNORM_EPSILON)
+
+
+def conv_same3(conv: nnx.Conv, x):
+  """A width-3, stride-1 "SAME" `nnx.Conv` (its parameters) applied by `winograd.conv3`."""
+  return winograd.conv3(x, conv.kernel[...]) + conv.bias[...]
 
 
 class ResBlock(nnx.Module):
@@ -47,12 +53,12 @@ class ResBlock(nnx.Module):
                  else None)
 
   def __call__(self, x, emb, dropout_key=None):
-    h = self.conv1(self.norm1.silu(x))
+    h = conv_same3(self.conv1, self.norm1.silu(x))
     scale, shift = jnp.split(self.film(jax.nn.silu(emb)), 2, axis=-1)  # (B, C) each
     h = self.norm2.silu(h, 1.0 + scale, shift)
     if dropout_key is not None:
       h = self.dropout(h, deterministic=False, rngs=dropout_key)
-    h = self.conv2(h)
+    h = conv_same3(self.conv2, h)
     return h + (x if self.skip is None else self.skip(x))
 
 
@@ -113,7 +119,6 @@ class Upsample(nnx.Module):
     zero = jnp.zeros_like(w0)
     kernel = jnp.concatenate([jnp.stack([w0, w1 + w2, zero]),     # output 2i
                               jnp.stack([zero, w0 + w1, w2])], -1)  # output 2i + 1
-    y = jax.lax.conv_general_dilated(x, kernel, (1,), ((1, 1),),
-                                     dimension_numbers=("NWC", "WIO", "NWC"))  # (B, L, 2C)
+    y = winograd.conv3(x, kernel)  # (B, L, 2C)
     b, length, channels = x.shape
     return y.reshape(b, 2 * length, channels) + self.conv.bias[...]
