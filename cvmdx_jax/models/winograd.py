@@ -29,10 +29,7 @@ def _combine(matrix, terms):
   rows = []
   for row in matrix:
     parts = [t if c == 1 else -t if c == -1 else c * t for c, t in zip(row, terms) if c != 0]
-    total = parts[0]
-    for part in parts[1:]:
-      total = total + part
-    rows.append(total)
+    rows.append(sum(parts[1:], parts[0]))
   return rows
 
 
