@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import runs, torch_zip
+from cvmdx_jax import runs
+from cvmdx_jax.models import torch_zip
 from cvmdx_jax.models import official_import, unet1d
 from tests.models import official_fixture as fx
 
