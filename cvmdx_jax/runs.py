@@ -41,11 +41,12 @@ import jax.numpy as jnp
 import ml_collections
 from flax import nnx
 
-from cvmdx_jax import checkpointing, checksums, constants, ego_motion, sharding, tokens
-from cvmdx_jax.checkpointing import CheckpointMismatchError
-from cvmdx_jax.checksums import CorruptRunError
+from cvmdx_jax import constants, ego_motion, sharding, tokens
+from cvmdx_jax.storage import checkpointing, checksums
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.config_dataclass import to_dataclass
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import scenario_norm, unet1d, uncertainty
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 

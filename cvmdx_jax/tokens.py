@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import checksums
+from cvmdx_jax.storage import checksums
 from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"

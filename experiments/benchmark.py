@@ -34,7 +34,9 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import atomic, cli, diffusion, ego_motion, inference, runs
+from cvmdx_jax import cli, diffusion, ego_motion, runs
+from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import diffusion as diffusion_train
 
@@ -58,7 +60,7 @@ NUM_TOKENS = 60
 REFERENCE_TOKENS = 256  # the official model: num_classes = 257 = Q + the null token
 # (warm-up calls, timed calls) of the reference timings: b1, big, train
 REFERENCE_REPEATS = {"b1": (1, 7), "big": (1, 3), "train": (2, 5)}
-_predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
+_predict_batch = jax.jit(sampling_lib.predict_batch, static_argnames=sampling_lib.STATIC_ARGNAMES)
 
 
 def _time(fn, repeats, warmup=1):
@@ -83,7 +85,7 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, repeats: int,
+def predict_timing(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
                    num_tokens: int = NUM_TOKENS, warmup: int = 1):
   """Median seconds of one jitted `predict_batch` call for `b` scenarios."""
   keys = jax.random.split(jax.random.key(0), b)
@@ -111,7 +113,7 @@ def train_timing(config, cfg, batch: int, repeats: int, warmup: int = 1):
   return _time(one, repeats, warmup)
 
 
-def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig:
+def default_sampling(base: sampling_lib.SamplingConfig) -> sampling_lib.SamplingConfig:
   """`base` with the default sampler and steps (--sampler, --steps, else
   configs/diffusion.py without a preset)."""
   default = diffusion_config.get_config().sampling
@@ -119,7 +121,7 @@ def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig
                              steps=_STEPS.value or default.steps)
 
 
-def reference_timings(config, num_tokens: int, sampling: inference.SamplingConfig, *,
+def reference_timings(config, num_tokens: int, sampling: sampling_lib.SamplingConfig, *,
                       big: int = 32, train_batch: int = 256,
                       repeats=REFERENCE_REPEATS) -> dict:
   """Timings in the ../shared/reference_bench schema, seconds (medians).
@@ -198,7 +200,7 @@ def main(argv):
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = diffusion_config.get_config(preset)
     cfg = runs.unet_config(config, NUM_TOKENS)
-    ddim = inference.SamplingConfig(conditioning=runs.conditioning(config))
+    ddim = sampling_lib.SamplingConfig(conditioning=runs.conditioning(config))
     fast = default_sampling(ddim)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
     gflop = forward_flops(graphdef, params, cfg.cond_dim) / 1e9

@@ -20,7 +20,8 @@ from pathlib import Path
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import atomic, cli, tokens
+from cvmdx_jax import cli, tokens
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
 from cvmdx_jax.data import dataset

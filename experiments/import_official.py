@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import checkpointing, cli, normalization, runs
+from cvmdx_jax import cli, normalization, runs
+from cvmdx_jax.storage import checkpointing
 from cvmdx_jax.models import official_import
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")

@@ -7,13 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import diffusion, ego_motion, inference, normalization, vmm
+from cvmdx_jax import diffusion, ego_motion, normalization, vmm
+from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 
 CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2)
-SAMPLING = inference.SamplingConfig(num_samples=9, steps=4)
-predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
+SAMPLING = sampling.SamplingConfig(num_samples=9, steps=4)
+predict_batch = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +65,7 @@ def test_ddpm_path_and_bad_config(model):
   out = _predict(model, jax.random.split(jax.random.key(0), 2), b=2, config=cfg)
   assert out.trajectories.shape == (2, 3, 125, 2)
   with pytest.raises(ValueError, match="sampler"):
-    inference.SamplingConfig(sampler="euler")
+    sampling.SamplingConfig(sampler="euler")
 
 
 def test_control_scale_sets_the_physical_range(model):
@@ -80,7 +81,7 @@ def test_control_scale_sets_the_physical_range(model):
 
 def _predict_ego(g, p, ego, keys, config):
   b = ego.shape[0]
-  return inference.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
+  return sampling.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
                                  jnp.zeros(b), keys, ego, schedule=diffusion.cosine_schedule(),
                                  null_token=CFG.null_token, config=config)
 
@@ -100,7 +101,7 @@ def test_ego_film_reaches_the_unconditional_branch():
   assert not np.allclose(a.controls, b.controls)
   np.testing.assert_array_equal(a.controls, _predict_ego(g, p, ego, keys, uncond_only).controls)
   with pytest.raises(ValueError, match="needs ego features"):
-    inference.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
+    sampling.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
                             keys, schedule=diffusion.cosine_schedule(),
                             null_token=CFG.null_token, config=uncond_only)
 

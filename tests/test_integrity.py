@@ -15,11 +15,12 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import checkpointing, checksums, locking, runs as runs_lib, sharding, tokens
-from cvmdx_jax.checkpointing import CheckpointMismatchError
-from cvmdx_jax.checksums import CorruptRunError
+from cvmdx_jax import runs as runs_lib, sharding, tokens
+from cvmdx_jax.storage import checkpointing, checksums, locking
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.data import dataset
-from cvmdx_jax.predict import IncompatibleRunsError, Predictor
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
 from cvmdx_jax.train import diffusion, tokenizer
 
 

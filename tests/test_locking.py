@@ -12,14 +12,14 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import locking
+from cvmdx_jax.storage import locking
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset
 from cvmdx_jax.train import diffusion, loop, tokenizer
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
-_HOLDER = ("import sys, time\nfrom cvmdx_jax import locking\n"
+_HOLDER = ("import sys, time\nfrom cvmdx_jax.storage import locking\n"
            "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n")
 
 

@@ -18,13 +18,14 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import checkpointing, ego_motion
+from cvmdx_jax import ego_motion
+from cvmdx_jax.storage import checkpointing
 from cvmdx_jax import runs as runs_lib
 from cvmdx_jax.evaluation import report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.predict import IncompatibleRunsError, OutOfDistributionWarning, Predictor
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
 from cvmdx_jax.train import diffusion, loop, tokenizer
 
 REPO = Path(__file__).resolve().parents[1]

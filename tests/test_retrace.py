@@ -16,10 +16,11 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import constants, predict, runs
+from cvmdx_jax import constants, runs
+from cvmdx_jax.inference.sampling import predictor as predict
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import from_arrays
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import unet1d, uncertainty
 from cvmdx_jax.train import loop

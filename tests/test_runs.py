@@ -14,7 +14,7 @@ from configs import tokenizer as tokenizer_config
 from cvmdx_jax import runs
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.diffusion import GuidanceConfig
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_prediction_path_does_not_import_the_trainers():
-  code = ("import sys, cvmdx_jax.predict, cvmdx_jax.runs, cvmdx_jax.inference; "
+  code = ("import sys, cvmdx_jax.inference.predictor, cvmdx_jax.runs; "
           "print(sorted(m for m in sys.modules if m.startswith('cvmdx_jax.train')))")
   proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
                         text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import atomic
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 

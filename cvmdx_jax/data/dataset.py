@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import atomic, locking
+from cvmdx_jax.storage import atomic, locking
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
 

@@ -18,7 +18,8 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import ego_motion, locking, normalization, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import ego_motion, normalization, runs, sharding, tokens as tokens_lib
+from cvmdx_jax.storage import locking
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d

@@ -29,8 +29,9 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from cvmdx_jax import atomic, checkpointing, locking, runs, sharding
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax import runs, sharding
+from cvmdx_jax.storage import atomic, checkpointing, locking
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 
 State = Any
 Batch = dict[str, jax.Array]

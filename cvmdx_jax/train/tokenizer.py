@@ -21,7 +21,8 @@ import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import checkpointing, locking, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import runs, sharding, tokens as tokens_lib
+from cvmdx_jax.storage import checkpointing, locking
 from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios

@@ -10,7 +10,7 @@ import scipy.stats
 from configs import common
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import runs, tokens as tokens_lib
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import tokenizer as train_tok
 
 

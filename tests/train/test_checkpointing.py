@@ -8,8 +8,9 @@ import numpy as np
 import optax
 import pytest
 
-from cvmdx_jax import checkpointing, sharding
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax import sharding
+from cvmdx_jax.storage import checkpointing
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 
 
 def _state(width: int = 3):

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import loop
 from tests.train import toy
 

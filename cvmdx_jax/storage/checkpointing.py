@@ -27,7 +27,7 @@ import jax
 import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
-from cvmdx_jax import atomic, checksums
+from cvmdx_jax.storage import atomic, checksums
 
 # orbax writes this file into the temporary directory just before the final rename; a
 # step directory without it was not finished by orbax (or was tampered with).

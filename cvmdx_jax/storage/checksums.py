@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from cvmdx_jax import atomic
+from cvmdx_jax.storage import atomic
 
 MANIFEST = "checksums.json"
 

@@ -26,10 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import checkpointing, ego_motion, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import ego_motion, runs, sharding, tokens as tokens_lib
+from cvmdx_jax.storage import checkpointing
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
-from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
+from cvmdx_jax.inference.sampling import Prediction, SamplingConfig, predict_batch
 
 
 class IncompatibleRunsError(ValueError):
