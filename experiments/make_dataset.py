@@ -25,6 +25,7 @@ _CONFIG = config_flags.DEFINE_config_file("config", "configs/dataset.py", "Datas
                                           lock_config=True)
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Output directory.")
 cli.output_dirs("data_dir")
+cli.typed_config("config", dataset.checked_config)
 
 
 def main(argv):

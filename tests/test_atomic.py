@@ -13,7 +13,7 @@ import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
 import scipy.io  # noqa: E402
 
-from cvmdx_jax import tokens  # noqa: E402
+from cvmdx_jax.runs import tokens  # noqa: E402
 from cvmdx_jax.storage import atomic  # noqa: E402
 
 

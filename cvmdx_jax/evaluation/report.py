@@ -15,7 +15,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import constants, tokens as tokens_lib
+from cvmdx_jax import constants
+from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import atomic, checksums, locking
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
