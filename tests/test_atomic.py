@@ -1,4 +1,4 @@
-"""`cvmdx_jax.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
+"""`cvmdx_jax.storage.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
 
 import json
 import os

@@ -1,4 +1,4 @@
-"""Run directories are owned by one process (cvmdx_jax.locking and where it is wired in)."""
+"""Run directories are owned by one process (cvmdx_jax.storage.locking and where it is wired in)."""
 
 import fcntl
 import os

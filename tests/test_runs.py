@@ -74,6 +74,16 @@ def test_run_configs_become_the_typed_configs():
   hash(demo), hash(tok)
 
 
+def _with(config, field: str, value):
+  """`config` with its dotted `field` set to `value`."""
+  *path, name = field.split(".")
+  section = config
+  for part in path:
+    section = section[part]
+  section[name] = value
+  return config
+
+
 @pytest.mark.parametrize("field, value, problem", [
     ("train.num_epochs", -3, "must be > 0"),
     ("diffusion.cond_drop_prob", 1.0, "must be in [0, 1)"),
@@ -84,14 +94,8 @@ def test_run_configs_become_the_typed_configs():
     ("seed", 2**32, "must be in [0, 2**32)"),
 ])
 def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value, problem):
-  config = diffusion_config.get_config("tiny")
-  *path, name = field.split(".")
-  section = config
-  for part in path:
-    section = section[part]
-  section[name] = value
   with pytest.raises(ConfigFieldError) as error:
-    DiffusionConfig.from_config(config)
+    DiffusionConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
   assert error.value.field == field and problem in error.value.problem
 
 
@@ -99,12 +103,6 @@ def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value
     ("quantizer.usage_decay", 1.5), ("model.encoder.latent_dim", 0),
     ("uncertainty.ridge", -1.0), ("encode_batch", 0), ("train.grad_clip", -1.0)])
 def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value):
-  config = tokenizer_config.get_config("tiny")
-  *path, name = field.split(".")
-  section = config
-  for part in path:
-    section = section[part]
-  section[name] = value
   with pytest.raises(ConfigFieldError) as error:
-    TokenizerRunConfig.from_config(config)
+    TokenizerRunConfig.from_config(_with(tokenizer_config.get_config("tiny"), field, value))
   assert error.value.field == field

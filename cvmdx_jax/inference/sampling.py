@@ -22,7 +22,8 @@ from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
 SAMPLERS = ("ddim", "ddpm", "dpmpp2m")
 MODES = ("paper", "official")
-STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")  # of `predict_batch` under jax.jit
+# of `predict_batch` under jax.jit
+STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")
 
 
 @dataclasses.dataclass(frozen=True)
