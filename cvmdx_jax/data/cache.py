@@ -18,7 +18,7 @@ from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.storage import checksums, identity
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 2  # a cache of an older layout has no checksums.json: rebuilt
 METADATA = "metadata.json"
 
 

@@ -46,12 +46,22 @@ def _leaves(value: Any, path: str = ""):
     yield path, value
 
 
+def _is_array(leaf: Any) -> bool:
+  return hasattr(leaf, "dtype") and hasattr(leaf, "shape")
+
+
 def content_id(value: Any) -> str:
-  """sha256 hex of `value`: nested dicts / lists / tuples of JSON scalars and arrays; each
-  leaf contributes its path, and for an array its dtype, shape and bytes."""
+  """sha256 hex of `value`: nested dicts / lists / tuples of JSON scalars and arrays.
+
+  Plain JSON data hash as their canonical text (`json.dumps(value, sort_keys=True)`);
+  with arrays, each leaf contributes its path, and for an array its dtype, shape and bytes.
+  """
+  leaves = list(_leaves(value))
+  if not any(_is_array(leaf) for _, leaf in leaves):
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
   digest = hashlib.sha256()
-  for path, leaf in _leaves(value):
-    if hasattr(leaf, "dtype") and hasattr(leaf, "shape"):
+  for path, leaf in leaves:
+    if _is_array(leaf):
       digest.update(f"{path}:{np.dtype(leaf.dtype).name}:{tuple(leaf.shape)};".encode())
       digest.update(_leaf_bytes(leaf))
     else:
