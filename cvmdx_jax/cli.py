@@ -5,8 +5,10 @@ A user's mistake ends the same way in every script: one line
 no traceback. User errors are
 - flag errors, found before `main` starts: an unknown flag, a value of the wrong type
   or out of range (`lower_bound=`, validators), a required flag left out, an unknown
-  config preset or field, a config file that cannot be loaded, a config field out of
-  range (`CONFIG_RANGES`), a `*_dir` config field that is not a directory;
+  config preset or field, a config file that cannot be loaded, a config field that is
+  not finite or out of range (the ranges live in the typed configs: `typed_config`
+  builds one at parsing, e.g. `runs.config.DiffusionConfig.from_config`), a `*_dir`
+  config field that is not a directory;
 - in `main`: `app.UsageError` (stray arguments), a `ValueError` raised by this
   repository's code (`DataError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
   `WorkdirLockedError`, ...: their messages name the file or field) and a missing or
@@ -31,6 +33,7 @@ from ml_collections import config_flags
 from ml_collections.config_flags.config_flags import is_config_flag
 
 from cvmdx_jax import host_allocator
+from cvmdx_jax.config_dataclass import ConfigFieldError
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
@@ -133,79 +136,12 @@ def _parse_flags(argv: list[str]) -> list[str]:
       problem = check_config(name)
       if problem:
         fail(problem)
+  for name, typed in _TYPED.items():
+    typed.build(name)
   return rest
 
 
 # ------------------------------------------------------------- config fields
-
-
-def _positive(v) -> bool:
-  return v > 0
-
-
-def _non_negative(v) -> bool:
-  return v >= 0
-
-
-def _fraction(v) -> bool:
-  return 0 <= v <= 1
-
-
-def _below_one(v) -> bool:
-  return 0 <= v < 1
-
-
-def _seed(v) -> bool:
-  return 0 <= v < 2**32  # jax.random.key wraps larger seeds
-
-
-_RULES = {_positive: "> 0", _non_negative: ">= 0", _fraction: "in [0, 1]",
-          _below_one: "in [0, 1)", _seed: "in [0, 2**32)"}
-# Ranges of the numeric fields of configs/*.py that the scripts read (a tuple field: each
-# element); a field a config does not have is skipped. Every float must also be finite.
-CONFIG_RANGES = {
-    # configs/tokenizer.py
-    "encode_batch": _positive, "model.encoder.latent_dim": _positive,
-    "model.encoder.channels": _positive, "model.encoder.kernel_size": _positive,
-    "model.cls_weight": _non_negative, "model.ego_weight": _non_negative,
-    "quantizer.codebook_size": _positive, "quantizer.beta": _non_negative,
-    "quantizer.usage_decay": _fraction, "quantizer.revive_strength": _non_negative,
-    "uncertainty.shrinkage": _non_negative, "uncertainty.ridge": _non_negative,
-    # configs/tokenizer.py and configs/diffusion.py
-    "seed": _seed, "train.batch_size": _positive, "train.num_epochs": _positive,
-    "train.learning_rate": _positive, "train.grad_clip": _non_negative,
-    "train.checkpoint_every": _positive, "train.keep": _positive,
-    # configs/diffusion.py
-    "model.base_channels": _positive, "model.channel_mult": _positive,
-    "model.num_res_blocks": _positive, "model.emb_mult": _positive,
-    "model.num_heads": _positive, "model.groups": _positive, "model.dropout": _below_one,
-    "model.attention_levels": _non_negative,
-    "diffusion.num_steps": _positive, "diffusion.cond_drop_prob": _below_one,
-    "diffusion.control_scale": _positive, "diffusion.residual_decay_s": _positive,
-    "train.warmup_steps": _non_negative, "train.min_lr": _non_negative,
-    "train.weight_decay": _non_negative, "train.ema_decay": _below_one,
-    "sampling.num_samples": _positive, "sampling.steps": _positive,
-    "sampling.eta": _non_negative, "sampling.clip_x0": _non_negative,
-    "sampling.guidance.w_min": _non_negative, "sampling.guidance.w_max_base": _non_negative,
-    "sampling.guidance.t_c": _positive, "sampling.hypotheses.c_max": _positive,
-    "sampling.hypotheses.x_scale": _positive, "sampling.hypotheses.y_scale": _positive,
-    "sampling.hypotheses.pca_dim": _positive, "sampling.hypotheses.reg_covar": _positive,
-    "sampling.hypotheses.em_iters": _positive,
-    # configs/dataset.py
-    "mat_val_fraction": _below_one, "extraction.seed": _seed, "splits.train": _positive,
-    "splits.val": _positive, "splits.test": _positive, "splits.test_ood": _positive,
-    "extraction.lc_offsets_s": _positive, "extraction.kl_stride_s": _positive,
-    "extraction.control_smoothing": _non_negative, "extraction.control_iterations": _positive,
-    "sumo.seed": _seed, "sumo.recordings.train": _positive,
-    "sumo.recordings.val": _positive, "sumo.recordings.test": _positive,
-    "sumo.recordings.test_ood": _non_negative, "sumo.workers": _positive,
-    "sumo.warmup_s": _non_negative, "sumo.duration_s": _positive,
-    "sumo.road_length_m": _positive, "sumo.section_length_m": _positive,
-    "sumo.lanes": _positive, "sumo.lane_width_m": _positive,
-    "sumo.speed_limits_kmh": _positive, "sumo.flow_per_lane": _positive,
-    "sumo.truck_share": _fraction, "sumo.car_types": _positive, "sumo.truck_types": _positive,
-    "sumo.held_out.lanes": _positive, "sumo.held_out.duration_s": _positive,
-}
 
 
 def _is_number(v) -> bool:
@@ -230,9 +166,6 @@ def _value_problem(path: str, value, default) -> str | None:
   values = value if isinstance(value, tuple) else (value,)
   if any(isinstance(v, float) and not math.isfinite(v) for v in values):
     return "must be finite"
-  rule = CONFIG_RANGES.get(path)
-  if rule is not None and not all(rule(v) for v in values if _is_number(v)):
-    return f"must be {_RULES[rule]}"
   return None
 
 
@@ -244,9 +177,42 @@ def _dir_problem(path: str, value) -> str | None:
   return None
 
 
+class TypedConfig:
+  """The typed config of a config flag, built once when the flags are parsed (`value`)."""
+
+  def __init__(self, from_config: Callable):
+    self._from_config, self._value = from_config, None
+
+  def build(self, name: str) -> None:
+    """Builds it from `--name`; a bad field exits via `fail`, naming it."""
+    try:
+      self._value = self._from_config(FLAGS[name].value)
+    except ConfigFieldError as e:
+      fail(f"--{name}.{e.field}={e.value}: {e.problem}")
+    except ValueError as e:
+      fail(f"--{name}: {e}")
+
+  @property
+  def value(self):
+    if self._value is None:
+      raise RuntimeError("TypedConfig.value read before the flags were parsed (cli.run)")
+    return self._value
+
+
+_TYPED: dict[str, TypedConfig] = {}
+
+
+def typed_config(name: str, from_config: Callable) -> TypedConfig:
+  """Registers `from_config(<value of config flag --name>)`, run when `run` parses the
+  flags (after the checks of `check_config`); returns the holder of its result."""
+  _TYPED[name] = TypedConfig(from_config)
+  return _TYPED[name]
+
+
 def check_config(name: str) -> str | None:
-  """The first problem of config flag `--name` (load failure, a field's type or range, a
-  `*_dir` field that is not a directory) as a message naming the field; None if none."""
+  """The first problem of config flag `--name` (load failure, a field's type or a value
+  that is not finite, a `*_dir` field that is not a directory) as a message naming the
+  field; None if none. Ranges are the typed config's (`typed_config`)."""
   flag = FLAGS[name]
   filename = config_flags.get_config_filename(flag)
   try:

@@ -13,6 +13,7 @@ pair; without it the run loads with `load_denoiser` only. `--workdir` must not e
 it appears complete or not at all.
 """
 
+import dataclasses
 import hashlib
 import shutil
 import tempfile
@@ -23,8 +24,11 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import checkpointing, cli, normalization, runs
+from cvmdx_jax import cli, targets
 from cvmdx_jax.models import official_import
+from cvmdx_jax.runs import fingerprints, layout, loaders
+from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.storage import checkpointing
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
@@ -39,14 +43,14 @@ cli.input_dirs("tokenizer_dir")
 cli.output_dirs("workdir")
 
 
-def write_run(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
-  """Writes a diffusion run directory in the `cvmdx_jax.runs` format: config.json,
-  model.json and checkpoints/1 holding {params, ema_params} (both the imported
-  weights) and step 0, with metadata {"fingerprint": fingerprint}."""
-  runs.write_diffusion_dir(workdir, config, cfg)
+def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+  """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: config.json
+  and checkpoints/1 holding {params, ema_params} (both the imported weights) and step 0,
+  with metadata {"fingerprint": fingerprint}."""
+  layout.write_diffusion_dir(workdir, config)
   state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
            "step": jnp.zeros((), jnp.int32)}
-  with checkpointing.Checkpoints(workdir / runs.CHECKPOINTS, keep=1) as ckpts:
+  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=1) as ckpts:
     ckpts.save(1, state, {"fingerprint": fingerprint})
 
 
@@ -63,27 +67,22 @@ def main(argv):
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
   if _TOKENIZER_DIR.value:
-    bundle = runs.load_tokenizer(_TOKENIZER_DIR.value)
+    bundle = loaders.load_tokenizer(_TOKENIZER_DIR.value)
     if bundle.config.quantizer.codebook_size != cfg.num_tokens:
       raise ValueError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
                        f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
                        f"{cfg.num_tokens}")
-    tokens_meta = {"checkpoint": {"fingerprint": bundle.fingerprint.to_dict(),
-                                  **bundle.checkpoint.to_dict()}}  # step, params_sha256
+    tokens_meta = {"checkpoint": bundle.checkpoint.to_dict()}  # fingerprint, step, params_id
     config.tokenizer_dir = _TOKENIZER_DIR.value
-  for field in ("base_channels", "num_res_blocks", "emb_mult", "num_heads", "groups",
-                "dropout"):
-    config.model[field] = getattr(cfg, field)
-  config.model.channel_mult = cfg.channel_mult
-  config.model.attention_levels = cfg.attention_levels
-  config.diffusion.control_scale = normalization.PAPER_SCALE  # the official (4, 0.7)
+  config.diffusion.control_scale = targets.PAPER_SCALE  # the official (4, 0.7)
   config.sampling.mode = "official"
+  config = dataclasses.replace(DiffusionConfig.from_config(config), model=cfg)
   digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
-  fingerprint = runs.diffusion_fingerprint(config, cfg, f"official:{digest}", tokens_meta)
+  fingerprint = fingerprints.diffusion(config, f"official:{digest}", tokens_meta)
   workdir.parent.mkdir(parents=True, exist_ok=True)
   tmp = Path(tempfile.mkdtemp(prefix=f".{workdir.name}.", dir=workdir.parent))
   try:
-    write_run(tmp / "run", config, cfg, params, fingerprint)
+    write_run(tmp / "run", config, params, fingerprint)
     (tmp / "run").rename(workdir)
   finally:
     shutil.rmtree(tmp)

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from absl import app, flags
 
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import sumo_stats
 
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Dataset directory (make_dataset.py).")

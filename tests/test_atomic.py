@@ -1,4 +1,4 @@
-"""`cvmdx_jax.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
+"""`cvmdx_jax.storage.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
 
 import json
 import os
@@ -13,7 +13,8 @@ import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
 import scipy.io  # noqa: E402
 
-from cvmdx_jax import atomic, tokens  # noqa: E402
+from cvmdx_jax.runs import tokens  # noqa: E402
+from cvmdx_jax.storage import atomic  # noqa: E402
 
 
 class _Boom:

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import cli, locking
+from cvmdx_jax import cli
+from cvmdx_jax.storage import locking
 
 REPO = Path(__file__).resolve().parents[1]
 # absl INFO lines (a script may log its devices before it fails): not error output

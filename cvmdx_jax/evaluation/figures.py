@@ -7,7 +7,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import optimize  # noqa: E402
 
-from cvmdx_jax import atomic, constants  # noqa: E402
+from cvmdx_jax import constants  # noqa: E402
+from cvmdx_jax.storage import atomic  # noqa: E402
 
 LANE_WIDTH_M = 3.5
 _COLOURS = ("tab:blue", "tab:orange", "tab:green")

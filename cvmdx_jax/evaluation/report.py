@@ -15,12 +15,14 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, checksums, constants, locking, tokens as tokens_lib
+from cvmdx_jax import constants
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.storage import atomic, checksums, locking
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, scoring
 from cvmdx_jax.multimodal import HypothesisConfig
-from cvmdx_jax.predict import Predictor
+from cvmdx_jax.inference.predictor import Predictor
 
 
 @locking.holds("workdir")

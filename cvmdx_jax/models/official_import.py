@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import torch_zip
+from cvmdx_jax.models import torch_zip
 from cvmdx_jax.models import unet1d
 
 OFFICIAL_NUM_HEADS = 4

@@ -146,7 +146,7 @@ def test_recording_without_lane_change(tmp_path):
 @pytest.mark.parametrize("v0, message", [(-5.0, "'v0' is negative"),
                                          (np.nan, "'v0' holds NaN")])
 def test_negative_or_nonfinite_v0_refused(v0, message):
-  from cvmdx_jax import predict
+  from cvmdx_jax.inference import predictor as predict
   from cvmdx_jax.data import scenarios as scenarios_lib
   arrays = {name: np.zeros((3, *shape), dtype) for name, (shape, dtype)
             in scenarios_lib.FIELDS.items()}

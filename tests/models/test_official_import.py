@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import runs, torch_zip
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.models import torch_zip
 from cvmdx_jax.models import official_import, unet1d
 from tests.models import official_fixture as fx
 
@@ -114,9 +115,9 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
-  denoiser = runs.load_denoiser(workdir)
+  denoiser = loaders.load_denoiser(workdir)
   assert denoiser.unet == official_import.unet_config(official)
-  assert runs.sampling_config(denoiser.config).mode == "official"
+  assert denoiser.config.sampling.mode == "official"
   _, want = official_import.load_official(path)
   jax.tree.map(np.testing.assert_array_equal, denoiser.params, want)
   again = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
