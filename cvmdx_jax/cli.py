@@ -76,13 +76,15 @@ def is_user_error(exc: BaseException) -> bool:
   return isinstance(exc, ValueError) and _ours(exc)
 
 
-def run(main: Callable[[list[str]], object]) -> None:
-  """`absl.app.run(main)` with the user-error handling of the module docstring, in a
-  process re-executed once with the allocator of `host_allocator` (Linux)."""
-  try:
-    host_allocator.reexec_with_allocator()
-  except ValueError as e:
-    fail(str(e))
+def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None:
+  """`absl.app.run(main)` with the user-error handling of the module docstring; with
+  `allocator` (the training entry points) in a process re-executed once with the
+  allocator of `host_allocator` (Linux; not for `--help`)."""
+  if allocator:
+    try:
+      host_allocator.reexec_with_allocator()
+    except ValueError as e:
+      fail(str(e))
 
   def guarded(argv):
     try:

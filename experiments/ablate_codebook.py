@@ -1,6 +1,6 @@
 """The codebook-size ablation of the paper's Table I on a chosen dataset.
 
-  PYTHONPATH=. python experiments/ablate_codebook.py --data_dir=runs/demo/data \\
+  .venv/bin/python experiments/ablate_codebook.py --data_dir=runs/demo/data \\
       --workdir=runs/ablation --codebook_sizes=30,60,90,128,256 \\
       --tokenizer_preset=demo --diffusion_preset=demo [--quantizers=cvq,vq]
 
@@ -80,4 +80,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """End-to-end speed of cVMDx on this machine, side by side in one run.
 
-  PYTHONPATH=. .venv/bin/python experiments/benchmark.py [--reference_batch=256]
+  .venv/bin/python experiments/benchmark.py [--reference_batch=256]
 
 Prints, for the CPU default U-Net (configs/diffusion.py:demo) and the reference-size
 U-Net (configs/diffusion.py:paper): the full jitted predict path (9 samples, DDIM 10,
@@ -12,7 +12,7 @@ training steps/s at batch 256. Weights are random: speed does not depend on them
 
 Against the official code (../shared/reference_bench, run its official_timing.py first):
 
-  PYTHONPATH=. .venv/bin/python experiments/benchmark.py \
+  .venv/bin/python experiments/benchmark.py \
       --reference_json=/tmp/ours.json --official_json=/tmp/official.json
 
 times only the official-size U-Net (configs/diffusion.py:reference with Q = 256 tokens:
@@ -239,4 +239,4 @@ for _name in ("demo_batch", "reference_batch", "train_batch", "repeats"):
   flags.register_validator(_name, lambda v: v >= 1, "must be >= 1")
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

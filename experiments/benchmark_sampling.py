@@ -14,7 +14,7 @@ Sections (`--sections`, in this order):
     'physical' and 'minmax' scaling and a few covariance floors.
 
 Run:
-  PYTHONPATH=. .venv/bin/python experiments/benchmark_sampling.py
+  .venv/bin/python experiments/benchmark_sampling.py
 """
 
 import time

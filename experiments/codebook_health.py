@@ -1,6 +1,6 @@
 """Codebook health: entries in use and perplexity of CVQ vs VQ for several codebook sizes.
 
-  PYTHONPATH=. .venv/bin/python experiments/codebook_health.py \
+  .venv/bin/python experiments/codebook_health.py \
       --config=configs/tokenizer.py:demo --workdir=runs/codebook_health
 
 Trains one tokeniser per (Q, quantizer) with the same config, data, seed and number of
@@ -84,4 +84,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """Evaluates trained cVMDx runs like the paper and writes metrics.json, tables, figures.
 
-  PYTHONPATH=. python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
+  .venv/bin/python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
       --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
       --workdir=runs/demo/eval
 `--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.

@@ -1,7 +1,7 @@
 """Imports an official cVMDx checkpoint (PyTorch state dict, no torch needed) as a
 diffusion run directory that `load_denoiser` and `Predictor.load` accept.
 
-  PYTHONPATH=. python experiments/import_official.py --checkpoint=ema_0.9999_080000.pt \\
+  .venv/bin/python experiments/import_official.py --checkpoint=ema_0.9999_080000.pt \\
       --workdir=runs/official_diffusion [--tokenizer_dir=runs/tokenizer]
 
 Q is read from the label embedding (Q + 1 rows, the last the null label). The run's

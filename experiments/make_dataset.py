@@ -1,6 +1,6 @@
 """Builds the dataset cache and prints / saves its summary.
 
-  PYTHONPATH=. .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py \
+  .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py \
       --data_dir=data/sumo                      # presets: configs/dataset.py:small, :tiny
   ... --config.source=highd --config.highd_dir=/path/to/highD/data --data_dir=data/highd
   ... --config.source=cvmd_mat --config.mat_dir=/path/to/mat --data_dir=data/mat

@@ -1,6 +1,6 @@
 """Per-recording statistics of a SUMO dataset (road, traffic, speeds, lane changes).
 
-  PYTHONPATH=. .venv/bin/python experiments/recording_stats.py --data_dir=data/sumo
+  .venv/bin/python experiments/recording_stats.py --data_dir=data/sumo
 
 Reads <data_dir>/recordings (XX_*.csv and plans.json, written by make_dataset.py), prints a
 markdown table with one row per recording and writes <data_dir>/recording_stats.json.

@@ -1,6 +1,6 @@
 """The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion -> evaluation report.
 
-  make demo        (= PYTHONPATH=. .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
+  make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
 Writes runs/demo/{data, tokenizer, diffusion}/ and two reports in the same schema: the
 test split's (metrics.json, results.md, predictions_<class>.png, kl_vs_usage.png) and
@@ -80,4 +80,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,7 +1,7 @@
 """Network evaluations against accuracy: DDIM and DPM-Solver++(2M) at several step
 counts on one trained run's validation split; picks the default sampler.
 
-  PYTHONPATH=. .venv/bin/python experiments/sampler_pareto.py \\
+  .venv/bin/python experiments/sampler_pareto.py \\
       --tokenizer_dir=runs/demo/tokenizer --diffusion_dir=runs/demo/diffusion \\
       --data_dir=runs/demo/data --out_dir=runs/demo/pareto
 

@@ -1,6 +1,6 @@
 """Trains the motion diffusion model on (normalised controls, token q).
 
-  PYTHONPATH=. python experiments/train_diffusion.py --config=configs/diffusion.py:demo \\
+  .venv/bin/python experiments/train_diffusion.py --config=configs/diffusion.py:demo \\
       --workdir=runs/demo/diffusion --config.data_dir=... --config.tokenizer_dir=...
 Rerunning the same command resumes from the last complete checkpoint.
 """
@@ -30,4 +30,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """Trains the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head) and writes its tokens.
 
-  PYTHONPATH=. .venv/bin/python experiments/train_tokenizer.py \
+  .venv/bin/python experiments/train_tokenizer.py \
       --config=configs/tokenizer.py:demo --workdir=runs/tokenizer
 Rerunning the same command resumes from the latest checkpoint in --workdir. The library
 does the work (cvmdx_jax.train.tokenizer); this file only parses flags.
@@ -33,4 +33,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)
