@@ -9,8 +9,11 @@ config is `configs/diffusion.py:reference` with the checkpoint's U-Net sizes, co
 scale (4 m/s^2, 0.7 rad/s) and `sampling.mode="official"` (override at inference
 with `Predictor.load(..., sampling=...)`). `--tokenizer_dir` pairs the run with a
 tokeniser of ours (its codebook size must be Q), so that `Predictor.load` accepts the
-pair; without it the run loads with `load_denoiser` only. `--workdir` must not exist;
-it appears complete or not at all.
+pair; without it the run loads with `load_denoiser` only. The checkpoint is checked
+whole (shapes against the architecture it implies, finite weights, `--num_heads`
+dividing the attention channels) before anything is written. `--workdir` must be new
+or empty; it is held (`locking.hold`) while written, so a second import into it is
+refused, and it gets config.json last: a run with config.json is complete.
 """
 
 import hashlib
@@ -23,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import checkpointing, cli, normalization, runs
+from cvmdx_jax import checkpointing, cli, locking, normalization, runs
 from cvmdx_jax.models import official_import
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
@@ -50,15 +53,39 @@ def write_run(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
     ckpts.save(1, state, {"fingerprint": fingerprint})
 
 
+def _write_once(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
+  """`write_run` into a new or empty `workdir`, held, via a temporary directory inside
+  it; on failure nothing but the lock file is left."""
+  with locking.hold(workdir):
+    found = sorted(p.name for p in workdir.iterdir() if not p.name.startswith(locking.LOCK_NAME))
+    if found:
+      raise ValueError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
+    tmp = Path(tempfile.mkdtemp(prefix=".import.", dir=workdir))
+    names = (runs.CHECKPOINTS, runs.MODEL_JSON, runs.CONFIG_JSON)  # config.json last
+    try:
+      write_run(tmp, config, cfg, params, fingerprint)
+      for name in names:
+        (tmp / name).rename(workdir / name)
+    except BaseException:
+      for name in names:
+        if (workdir / name).is_dir():
+          shutil.rmtree(workdir / name)
+        (workdir / name).unlink(missing_ok=True)
+      raise
+    finally:
+      shutil.rmtree(tmp)
+
+
 def main(argv):
   del argv
   checkpoint, workdir = Path(_CHECKPOINT.value), Path(_WORKDIR.value)
-  if workdir.exists():
-    raise ValueError(f"--workdir={workdir} exists; give a new directory")
   if not checkpoint.is_file():
     raise FileNotFoundError(f"--checkpoint={checkpoint}: no such file")
-  cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
-                                              num_heads=_NUM_HEADS.value)
+  try:
+    cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
+                                                num_heads=_NUM_HEADS.value)
+  except official_import.NumHeadsError as e:
+    raise ValueError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
@@ -80,13 +107,7 @@ def main(argv):
   config.sampling.mode = "official"
   digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
   fingerprint = runs.diffusion_fingerprint(config, cfg, f"official:{digest}", tokens_meta)
-  workdir.parent.mkdir(parents=True, exist_ok=True)
-  tmp = Path(tempfile.mkdtemp(prefix=f".{workdir.name}.", dir=workdir.parent))
-  try:
-    write_run(tmp / "run", config, cfg, params, fingerprint)
-    (tmp / "run").rename(workdir)
-  finally:
-    shutil.rmtree(tmp)
+  _write_once(workdir, config, cfg, params, fingerprint)
   print(f"imported {checkpoint} (Q = {cfg.num_tokens}, "
         f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}")
 

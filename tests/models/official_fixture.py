@@ -6,9 +6,11 @@ torch-free writer of `torch.save` zip files."""
 import io
 import math
 import pickle
+import struct
 import sys
 import types
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -194,9 +196,9 @@ class _StorageRef:
     self.key, self.array = key, array
 
 
-def write_pt(path, obj, monkeypatch, name="archive"):
-  """Writes `obj` (dicts, numbers, `_Tensor`s, numpy arrays) as a torch.save zip file:
-  `<name>/data.pkl` (protocol 2, storages as persistent ids) + `<name>/data/<key>`."""
+def pickled(obj, monkeypatch) -> tuple[bytes, dict]:
+  """`obj` (dicts, lists, tuples, numbers, `_Tensor`s, numpy arrays) pickled as
+  torch.save does (protocol 2, storages as persistent ids): (pickle, {key: array})."""
   torch_mod = types.ModuleType("torch")
   utils_mod = types.ModuleType("torch._utils")
 
@@ -218,9 +220,14 @@ def write_pt(path, obj, monkeypatch, name="archive"):
 
   def wrap(value):
     if isinstance(value, np.ndarray):
-      return _Tensor(str(next(counter)), np.ascontiguousarray(value))
+      return _Tensor(str(next(counter)), np.array(value, order="C"))  # 0-d stays 0-d
     if isinstance(value, dict):
-      return type(value)((k, wrap(v)) for k, v in value.items())
+      out = type(value)((k, wrap(v)) for k, v in value.items())
+      if hasattr(value, "__dict__"):  # e.g. a state dict's _metadata
+        vars(out).update(vars(value))
+      return out
+    if type(value) in (list, tuple):
+      return type(value)(map(wrap, value))
     return value
 
   class Pickler(pickle.Pickler):
@@ -234,9 +241,42 @@ def write_pt(path, obj, monkeypatch, name="archive"):
 
   buf = io.BytesIO()
   Pickler(buf, protocol=2).dump(wrap(obj))
+  return buf.getvalue(), storages
+
+
+def write_archive(path, pkl: bytes, storages: dict, name="archive"):
+  """A torch.save zip file: `<name>/data.pkl` + `<name>/data/<key>` (stored)."""
   with zipfile.ZipFile(path, "w") as z:
-    z.writestr(f"{name}/data.pkl", buf.getvalue())
+    z.writestr(f"{name}/data.pkl", pkl)
     z.writestr(f"{name}/byteorder", "little")
     for key, array in storages.items():
       z.writestr(f"{name}/data/{key}", array.astype(array.dtype.newbyteorder("<")).tobytes())
     z.writestr(f"{name}/version", "3\n")
+
+
+def write_pt(path, obj, monkeypatch, name="archive"):
+  """Writes `obj` (as `pickled` takes it) as a torch.save zip file."""
+  write_archive(path, *pickled(obj, monkeypatch), name=name)
+
+
+def write_deflate_bomb(path, pkl: bytes, name: str, size: int):
+  """A zip file of `<name>/data.pkl` (`pkl`, stored) and a deflated `<name>/data/0` of
+  `size` zero bytes (size a multiple of 1 MiB), the archive ~size / 1000 bytes."""
+  chunk = 1 << 20
+  block = zlib.compressobj(9, zlib.DEFLATED, -15)
+  block = block.compress(bytes(chunk)) + block.flush(zlib.Z_FULL_FLUSH)  # no back-reference
+  data = block * (size // chunk) + b"\x03\x00"  # + an empty final block
+  crc = 0
+  for _ in range(size // chunk):
+    crc = zlib.crc32(bytes(chunk), crc)
+  entries = [(f"{name}/data.pkl", pkl, 0, len(pkl), zlib.crc32(pkl)),
+             (f"{name}/data/0", data, 8, size, crc)]
+  out, central = bytearray(), bytearray()
+  for entry, payload, method, raw_size, entry_crc in entries:
+    fields = (20, 0, method, 0, 0, entry_crc, len(payload), raw_size, len(entry))
+    central += struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, *fields, 0, 0, 0, 0, 0,
+                           len(out)) + entry.encode()
+    out += struct.pack("<IHHHHHIIIHH", 0x04034B50, *fields, 0) + entry.encode() + payload
+  end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(entries), len(entries), len(central),
+                    len(out), 0)
+  path.write_bytes(bytes(out + central + end))
