@@ -19,17 +19,18 @@ tensor; nothing of the file is executed, and each read starts from fresh objects
   keys, APPEND(S) only on a list, BUILD only on an OrderedDict (torch's `_metadata` of
   a state dict, which is dropped);
 - the result: anything but dicts, lists and tuples of numbers, strings, bytes, None
-  and tensors; containers nested deeper than `MAX_DEPTH`, or cyclic;
+  and tensors; containers nested deeper than `MAX_DEPTH`, or cyclic; more than
+  `MAX_OBJECTS` containers and tensors;
 - tensors, before any view is built: offset, sizes and strides that are not
   integers; a stride <= 0 on a dimension of size > 1 (a broadcast or reversed view);
   overlapping dimensions (ordered by stride, each must step past the extent of the
   smaller ones, as every slice, transpose and narrowing of torch does); a view past
   the end of its storage; tensors together larger than twice the file.
 
-Memory ceiling: a read of a file of L bytes allocates at most the pickle (<=
-`MAX_PICKLE_BYTES`) and the Python objects it builds (at most ~70 bytes per pickle
-byte, < 80 MB), the storage entries it uses (<= L bytes), the tensors (<= 2 L) and
-one tensor's conversion (<= 2 L): peak <= 5 L + 80 MB.
+Memory ceiling: a read of a file of L bytes allocates the pickle (<= `MAX_PICKLE_BYTES`)
+and the Python objects it builds (measured: at most ~75 bytes per pickle byte, a stack
+of empty dicts, so < 40 MB), the storage entries it uses (<= L bytes), the tensors
+(<= 2 L) and one tensor's conversion (<= 2 L): peak <= 5 L + 40 MB.
 """
 
 import collections
@@ -41,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
-MAX_PICKLE_BYTES = 1 << 20  # ~7,000 tensors; the official U-Net's pickle is ~40 kB
+MAX_PICKLE_BYTES = 1 << 19  # ~4,500 tensors; the official U-Net's (227 tensors) is 26 kB
 MAX_DEPTH = 32  # container nesting of the result
+MAX_OBJECTS = 1 << 16  # containers and tensors in the result
 MAX_DIM = 1 << 40  # elements along one dimension
 
 
@@ -116,9 +118,12 @@ def _entry(archive: zipfile.ZipFile, name: str, limit: int) -> zipfile.ZipInfo:
   if info.compress_type != zipfile.ZIP_STORED:
     raise _Refused(f"entry {name} is compressed (method {info.compress_type}); torch.save "
                    "stores entries uncompressed")
-  if info.file_size != info.compress_size or info.file_size > limit:
-    raise _Refused(f"entry {name} declares {info.file_size} bytes ({info.compress_size} "
-                   f"stored), more than the {limit} allowed")
+  if info.file_size != info.compress_size:
+    raise _Refused(f"entry {name} declares {info.file_size} bytes but stores "
+                   f"{info.compress_size}")
+  if info.file_size > limit:
+    raise _Refused(f"entry {name} declares {info.file_size} bytes, more than the {limit} "
+                   "allowed")
   return info
 
 
@@ -251,19 +256,22 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
       return obj
     if id(obj) in self._done:
       return self._done[id(obj)]
-    where = ".".join(map(str, path)) or "the top-level object"
+    where = lambda: ".".join(map(str, path)) or "the top-level object"
     if id(obj) in self._open or depth >= MAX_DEPTH:
-      raise _Refused(f"{where}: containers nested deeper than {MAX_DEPTH} or in a cycle")
+      raise _Refused(f"{where()}: containers nested deeper than {MAX_DEPTH} or in a cycle")
+    if len(self._done) >= MAX_OBJECTS:
+      raise _Refused(f"{where()}: more than {MAX_OBJECTS} containers and tensors")
     kind = type(obj)
     self._open.add(id(obj))
     if kind is _Tensor:
-      out = self._materialise(obj, where)
+      out = self._materialise(obj, where())
     elif kind in (dict, collections.OrderedDict):
       out = kind((k, self.resolve(v, path + (k,), depth + 1)) for k, v in obj.items())
     elif kind in (list, tuple):
       out = kind(self.resolve(v, path + (i,), depth + 1) for i, v in enumerate(obj))
     else:
-      raise _Refused(f"{where}: holds {_kind(obj)}, not a container, number, string or tensor")
+      raise _Refused(f"{where()}: holds {_kind(obj)}, not a container, number, string or "
+                     "tensor")
     self._open.discard(id(obj))
     self._done[id(obj)] = out
     return out

@@ -61,16 +61,17 @@ def _write_once(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
     if found:
       raise ValueError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
     tmp = Path(tempfile.mkdtemp(prefix=".import.", dir=workdir))
-    names = (runs.CHECKPOINTS, runs.MODEL_JSON, runs.CONFIG_JSON)  # config.json last
+    moved = []
     try:
       write_run(tmp, config, cfg, params, fingerprint)
-      for name in names:
-        (tmp / name).rename(workdir / name)
+      for entry in sorted(tmp.iterdir(), key=lambda p: p.name == runs.CONFIG_JSON):
+        entry.rename(workdir / entry.name)  # config.json last
+        moved.append(workdir / entry.name)
     except BaseException:
-      for name in names:
-        if (workdir / name).is_dir():
-          shutil.rmtree(workdir / name)
-        (workdir / name).unlink(missing_ok=True)
+      for path in moved:
+        if path.is_dir():
+          shutil.rmtree(path)
+        path.unlink(missing_ok=True)
       raise
     finally:
       shutil.rmtree(tmp)

@@ -5,6 +5,7 @@ import os
 import pickle
 import subprocess
 import sys
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -114,7 +115,9 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
-  denoiser = runs.load_denoiser(workdir)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # e.g. a file without its checksum
+    denoiser = runs.load_denoiser(workdir)
   assert denoiser.unet == official_import.unet_config(official)
   assert runs.sampling_config(denoiser.config).mode == "official"
   _, want = official_import.load_official(path)

@@ -148,7 +148,7 @@ def test_zip_entries_are_checked_by_their_header(tmp_path, monkeypatch):
       "deflated": ([("a/data.pkl", pkl, zipfile.ZIP_STORED),
                     ("a/data/0", raw, zipfile.ZIP_DEFLATED)], "entry a/data/0 is compressed"),
       "big pickle": ([("a/data.pkl", pickle.dumps("x" * (2 << 20), 2), zipfile.ZIP_STORED)],
-                     "entry a/data.pkl declares 2097162 bytes"),
+                     "entry a/data.pkl declares 2097162 bytes, more than the 524288 allowed"),
       "short storage": ([("a/data.pkl", pkl, zipfile.ZIP_STORED),
                          ("a/data/0", raw[:36], zipfile.ZIP_STORED)],
                         "storage a/data/0 declares 10 elements of FloatStorage"),
@@ -185,6 +185,8 @@ NESTED = pickle.EMPTY_LIST * 40 + pickle.APPEND * 39
      "k: holds torch.FloatStorage"),
     (pickle.EMPTY_LIST + pickle.BINPUT + b"\x00" + pickle.BINGET + b"\x00" + pickle.APPEND,
      "bad.pt: 0: containers nested deeper than 32 or in a cycle"),
+    (pickle.EMPTY_LIST + (pickle.EMPTY_LIST + pickle.APPEND) * 70_000,
+     "65536: more than 65536 containers and tensors"),
     (NESTED, "0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0: containers"),
     (_u("storage") + _global("torch", "FloatStorage") + _u("0") + pickle.BININT1 + b"\x05"
      + pickle.TUPLE + pickle.BINPERSID, "unsupported persistent id"),
@@ -198,16 +200,18 @@ def test_opcodes_and_containers_are_restricted(tmp_path, body, message):
   assert str(e.value).startswith(f"{path}: ") and message in str(e.value), str(e.value)
 
 
+# VmHWM, the peak RSS of this process image (ru_maxrss would include the forking parent's)
 _MEASURE = """
-import resource, sys
+import re, sys
 from cvmdx_jax import torch_zip
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+peak = lambda: int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read())[1])
+before = peak()
 try:
   torch_zip.read_pt(sys.argv[1])
   print("read")
 except torch_zip.TorchFileError as e:
   print(e)
-print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) // 1024)
+print((peak() - before) // 1024)
 """
 
 
@@ -231,10 +235,12 @@ def test_tiny_files_declaring_huge_tensors_stay_small(tmp_path, monkeypatch):
   with zipfile.ZipFile(bomb) as z:  # a real bomb: 1 GiB of zeros behind ~1 MB
     assert z.getinfo("archive/data/0").file_size == 2**30
     assert z.open("archive/data/0").read(1 << 20) == bytes(1 << 20)
+  dicts = _raw(tmp_path / "dicts.pt", pickle.EMPTY_DICT * (torch_zip.MAX_PICKLE_BYTES - 4))
   assert broadcast.stat().st_size < 700 and bomb.stat().st_size < 1.1e6
   for path, message in ((broadcast, "broadcast, reversed or overlapping view"),
-                        (bomb, "entry archive/data/0 is compressed")):
+                        (bomb, "entry archive/data/0 is compressed"),
+                        (dicts, "read")):  # the most Python objects a pickle makes
     text, growth = _peak_growth_mb(path)
     print(f"{path.name}: {path.stat().st_size} bytes, peak RSS growth {growth} MB: {text}")
-    assert text.startswith(str(path)) and message in text
-    assert growth < 20, (path.name, growth)
+    assert message in text and (text == "read" or text.startswith(str(path)))
+    assert growth < (60 if path == dicts else 20), (path.name, growth)
