@@ -14,7 +14,6 @@ import math
 import pickletools
 import struct
 import tracemalloc
-import zipfile
 
 import numpy as np
 import pytest
