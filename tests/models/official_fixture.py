@@ -259,24 +259,59 @@ def write_pt(path, obj, monkeypatch, name="archive"):
   write_archive(path, *pickled(obj, monkeypatch), name=name)
 
 
+def _local_header(name: str, payload: bytes, method: int, size: int, crc: int) -> bytes:
+  return struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0, crc, len(payload), size,
+                     len(name), 0) + name.encode()
+
+
+def write_zip(path, blob: bytes, records: list[tuple]):
+  """A zip file of `blob` (local headers and payloads) and a central directory of
+  `records` (name, method, local header offset, stored length, size, crc)."""
+  central = b"".join(
+      struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, method, 0, 0, crc, stored, size,
+                  len(name), 0, 0, 0, 0, 0, offset) + name.encode()
+      for name, method, offset, stored, size, crc in records)
+  end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(records), len(records), len(central),
+                    len(blob), 0)
+  path.write_bytes(blob + central + end)
+
+
+def write_entries(path, entries: list[tuple]):
+  """A zip file of (name, payload, method, size, crc) entries, one after the other."""
+  blob, records = b"", []
+  for name, payload, method, size, crc in entries:
+    records.append((name, method, len(blob), len(payload), size, crc))
+    blob += _local_header(name, payload, method, size, crc) + payload
+  write_zip(path, blob, records)
+
+
 def write_deflate_bomb(path, pkl: bytes, name: str, size: int):
   """A zip file of `<name>/data.pkl` (`pkl`, stored) and a deflated `<name>/data/0` of
   `size` zero bytes (size a multiple of 1 MiB), the archive ~size / 1000 bytes."""
   chunk = 1 << 20
   block = zlib.compressobj(9, zlib.DEFLATED, -15)
   block = block.compress(bytes(chunk)) + block.flush(zlib.Z_FULL_FLUSH)  # no back-reference
-  data = block * (size // chunk) + b"\x03\x00"  # + an empty final block
   crc = 0
   for _ in range(size // chunk):
     crc = zlib.crc32(bytes(chunk), crc)
-  entries = [(f"{name}/data.pkl", pkl, 0, len(pkl), zlib.crc32(pkl)),
-             (f"{name}/data/0", data, 8, size, crc)]
-  out, central = bytearray(), bytearray()
-  for entry, payload, method, raw_size, entry_crc in entries:
-    fields = (20, 0, method, 0, 0, entry_crc, len(payload), raw_size, len(entry))
-    central += struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, *fields, 0, 0, 0, 0, 0,
-                           len(out)) + entry.encode()
-    out += struct.pack("<IHHHHHIIIHH", 0x04034B50, *fields, 0) + entry.encode() + payload
-  end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(entries), len(entries), len(central),
-                    len(out), 0)
-  path.write_bytes(bytes(out + central + end))
+  write_entries(path, [(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl)),
+                       (f"{name}/data/0", block * (size // chunk) + b"\x03\x00",  # final block
+                        zipfile.ZIP_DEFLATED, size, crc)])
+
+
+def write_nested_entries(path, pkl: bytes, name: str, payload: bytes, depth: int):
+  """A zip file of `<name>/data.pkl` and storages `<name>/data/0..depth-1`, each stored
+  entry's payload holding the next entry (header and payload): entries sharing bytes."""
+  inner = b""
+  for key in reversed(range(depth)):
+    inner = (_local_header(f"{name}/data/{key}", inner + payload, zipfile.ZIP_STORED,
+                           len(inner + payload), zlib.crc32(inner + payload)) + inner + payload)
+  head = _local_header(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl))
+  records = [(f"{name}/data.pkl", 0, 0, len(pkl), len(pkl), zlib.crc32(pkl))]
+  offset, rest = len(head + pkl), inner
+  for key in range(depth):
+    header = 30 + len(f"{name}/data/{key}")
+    body = rest[header:]
+    records.append((f"{name}/data/{key}", 0, offset, len(body), len(body), zlib.crc32(body)))
+    offset, rest = offset + header, body[:len(body) - len(payload)]
+  write_zip(path, head + pkl + inner, records)

@@ -164,6 +164,24 @@ def test_zip_entries_are_checked_by_their_header(tmp_path, monkeypatch):
     assert str(e.value).startswith(f"{path}: {message}"), (name, str(e.value))
 
 
+@pytest.mark.parametrize("depth", [1, 8])
+def test_entries_sharing_bytes_are_read_once_at_most(tmp_path, monkeypatch, depth):
+  payload = np.arange(256, dtype=np.float32)
+  pkl, _ = fx.pickled({f"t{k}": fx._Tensor(str(k), payload) for k in range(depth)}, monkeypatch)
+  path = tmp_path / "nested.pt"
+  fx.write_nested_entries(path, pkl, "a", payload.tobytes(), depth)
+  with zipfile.ZipFile(path) as z:  # valid entries, together larger than the file
+    sizes = [z.getinfo(f"a/data/{k}").file_size for k in range(depth)]
+    assert all(z.read(f"a/data/{k}")[-1024:] == payload.tobytes() for k in range(depth))
+  if depth == 1:
+    np.testing.assert_array_equal(torch_zip.read_pt(path)["t0"], payload)
+    return
+  assert sum(sizes) > 3 * path.stat().st_size
+  with pytest.raises(torch_zip.TorchFileError, match="the entries read add up to more than "
+                     f"the archive's {path.stat().st_size} bytes"):
+    torch_zip.read_pt(path)
+
+
 NESTED = pickle.EMPTY_LIST * 40 + pickle.APPEND * 39
 
 
