@@ -9,12 +9,14 @@ config is `configs/diffusion.py:reference` with the checkpoint's U-Net sizes, co
 scale (4 m/s^2, 0.7 rad/s) and `sampling.mode="official"` (override at inference
 with `Predictor.load(..., sampling=...)`). `--tokenizer_dir` pairs the run with a
 tokeniser of ours (its codebook size must be Q), so that `Predictor.load` accepts the
-pair; without it the run loads with `load_denoiser` only. `--workdir` must not exist;
-it appears complete or not at all.
+pair; without it the run loads with `load_denoiser` only. The checkpoint is checked
+whole (shapes against the architecture it implies, finite weights, `--num_heads`
+dividing the attention channels) before anything is written. `--workdir` must be new
+or empty; it is held (`locking.hold`) while written, so a second import into it is
+refused, and it gets config.json last: a run with config.json is complete.
 """
 
 import dataclasses
-import hashlib
 import shutil
 import tempfile
 from pathlib import Path
@@ -28,7 +30,7 @@ from cvmdx_jax import cli, targets
 from cvmdx_jax.models import official_import
 from cvmdx_jax.runs import fingerprints, layout, loaders
 from cvmdx_jax.runs.config import DiffusionConfig
-from cvmdx_jax.storage import checkpointing
+from cvmdx_jax.storage import checkpointing, checksums, locking
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
@@ -41,6 +43,7 @@ _TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
 flags.mark_flags_as_required(["checkpoint", "workdir"])
 cli.input_dirs("tokenizer_dir")
 cli.output_dirs("workdir")
+_TMP_PREFIX = ".import."  # the run is written into <workdir>/.import.*, then moved in
 
 
 def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
@@ -54,15 +57,43 @@ def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict)
     ckpts.save(1, state, {"fingerprint": fingerprint})
 
 
+def _write_once(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+  """`write_run` into a new or empty `workdir`, held, via a temporary directory inside
+  it; on failure nothing but the lock file is left. A `.import.*` directory left by an
+  import that was killed is removed first (the lock says no import is running)."""
+  with locking.hold(workdir):
+    for stale in workdir.glob(f"{_TMP_PREFIX}*"):
+      shutil.rmtree(stale)
+    found = sorted(p.name for p in workdir.iterdir() if not p.name.startswith(locking.LOCK_NAME))
+    if found:
+      raise ValueError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
+    tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=workdir))
+    moved = []
+    try:
+      write_run(tmp, config, params, fingerprint)
+      for entry in sorted(tmp.iterdir(), key=lambda p: p.name == layout.CONFIG_JSON):
+        entry.rename(workdir / entry.name)  # config.json last
+        moved.append(workdir / entry.name)
+    except BaseException:
+      for path in moved:
+        if path.is_dir():
+          shutil.rmtree(path)
+        path.unlink(missing_ok=True)
+      raise
+    finally:
+      shutil.rmtree(tmp)
+
+
 def main(argv):
   del argv
   checkpoint, workdir = Path(_CHECKPOINT.value), Path(_WORKDIR.value)
-  if workdir.exists():
-    raise ValueError(f"--workdir={workdir} exists; give a new directory")
   if not checkpoint.is_file():
     raise FileNotFoundError(f"--checkpoint={checkpoint}: no such file")
-  cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
-                                              num_heads=_NUM_HEADS.value)
+  try:
+    cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
+                                                num_heads=_NUM_HEADS.value)
+  except official_import.NumHeadsError as e:
+    raise ValueError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
@@ -77,15 +108,9 @@ def main(argv):
   config.diffusion.control_scale = targets.PAPER_SCALE  # the official (4, 0.7)
   config.sampling.mode = "official"
   config = dataclasses.replace(DiffusionConfig.from_config(config), model=cfg)
-  digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
+  digest = checksums.file_sha256(checkpoint)[:16]
   fingerprint = fingerprints.diffusion(config, f"official:{digest}", tokens_meta)
-  workdir.parent.mkdir(parents=True, exist_ok=True)
-  tmp = Path(tempfile.mkdtemp(prefix=f".{workdir.name}.", dir=workdir.parent))
-  try:
-    write_run(tmp / "run", config, params, fingerprint)
-    (tmp / "run").rename(workdir)
-  finally:
-    shutil.rmtree(tmp)
+  _write_once(workdir, config, params, fingerprint)
   print(f"imported {checkpoint} (Q = {cfg.num_tokens}, "
         f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}")
 
