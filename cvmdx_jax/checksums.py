@@ -12,6 +12,7 @@ BUILD_NOTES.md "Integrity").
 Format helpers: `write_json` / `read_json`, `write_npz` / `read_npz`.
 """
 
+import contextlib
 import hashlib
 import io
 import json
@@ -60,13 +61,14 @@ def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
 
 def write_all(files: dict[str | os.PathLike, bytes]) -> None:
   """Writes {path: bytes} of one existing directory as a group (`atomic.write_all`: all
-  new or all old) and records every digest; a failure in a directory without a manifest
-  leaves none."""
+  new or all old) and records every digest; after a failure the manifest is as before
+  (or absent, as before)."""
   paths = [Path(p) for p in files]
   directory = paths[0].parent
   if any(p.parent != directory for p in paths):
     raise ValueError(f"checksums.write_all: files of several directories: {paths}")
   manifest, fresh = _read_manifest(directory), not (directory / MANIFEST).exists()
+  before = dict(manifest)
   digests = {p.name: sha256(data) for p, data in zip(paths, files.values())}
   for name, digest in digests.items():
     manifest[name] = sorted({*_digests(manifest.get(name)), digest})
@@ -74,8 +76,11 @@ def write_all(files: dict[str | os.PathLike, bytes]) -> None:
   try:
     atomic.write_all(files)
   except BaseException:
-    if fresh:  # an old manifest keeps the extra digests: harmless, the old ones are listed
+    if fresh:
       (directory / MANIFEST).unlink()
+    else:  # if even this fails, the extra digests are harmless: the old ones are listed
+      with contextlib.suppress(OSError):
+        _write_manifest(directory, before)
     raise
   manifest.update(digests)
   _write_manifest(directory, manifest)
