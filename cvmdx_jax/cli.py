@@ -13,12 +13,19 @@ no traceback. User errors are
   repository's code (`DataError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
   `WorkdirLockedError`, ...: their messages name the file or field) and a missing or
   unwritable path (`FileNotFoundError`, `NotADirectoryError`, `PermissionError`, ...).
+The machine failing ends the same way, exit status 2, wherever it is raised: an OSError
+with errno ENOSPC, EDQUOT (disk or quota full), EROFS (read-only file system) or
+ENAMETOOLONG, also one from a flag's path check, and an error of orbax/tensorstore whose
+message carries such an errno (`[os_error_code='28']`, a checkpoint write on a full disk).
+SIGINT (Ctrl-C) prints `<script>: error: interrupted; rerun to resume` and exits with
+status 130; training resumes from its last checkpoint, other steps are redone.
 Anything else keeps its traceback, also a ValueError raised inside a library (a bad
 array handed to numpy or JAX is a bug of ours, not of the user).
 
 Validators for plain flags: `input_dirs`, `output_dirs`, `presets`, `int_list`.
 """
 
+import errno
 import math
 import os
 import re
@@ -41,6 +48,9 @@ _REPO = Path(__file__).resolve().parents[1]
 _OUR_CODE = ("cvmdx_jax", "configs", "experiments")
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
                 PermissionError)
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+_MACHINE_ERRNOS = (*_FULL, errno.EROFS, errno.ENAMETOOLONG)
+INTERRUPTED_STATUS = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 
 def _script() -> str:
@@ -76,6 +86,19 @@ def is_user_error(exc: BaseException) -> bool:
   return isinstance(exc, ValueError) and _ours(exc)
 
 
+def machine_failure(exc: BaseException) -> str | None:
+  """The one-line message of a failure of the machine (module docstring), else None."""
+  if isinstance(exc, OSError):
+    code = exc.errno
+  else:  # tensorstore's status text, e.g. "RESOURCE_EXHAUSTED: ... [os_error_code='28']"
+    found = re.search(r"\[os_error_code='(\d+)'\]", str(exc))
+    code = int(found.group(1)) if found else None
+  if code not in _MACHINE_ERRNOS:
+    return None
+  hint = "; free some space and rerun (training resumes from its last checkpoint)"
+  return f"{exc}{hint if code in _FULL else ''}"
+
+
 def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None:
   """`absl.app.run(main)` with the user-error handling of the module docstring; with
   `allocator` (the training entry points) in a process re-executed once with the
@@ -90,11 +113,16 @@ def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None
     try:
       return main(argv)
     except Exception as e:  # pylint: disable=broad-except
-      if not is_user_error(e):
+      message = str(e) if is_user_error(e) else machine_failure(e)
+      if message is None:
         raise
-      fail(str(e))
+      fail(message)
 
-  app.run(guarded, flags_parser=_parse_flags)
+  try:
+    app.run(guarded, flags_parser=_parse_flags)
+  except KeyboardInterrupt:
+    print(f"{_script()}: error: interrupted; rerun to resume", file=sys.stderr)
+    sys.exit(INTERRUPTED_STATUS)
 
 
 # ---------------------------------------------------------------- flag parsing
@@ -174,8 +202,11 @@ def _value_problem(path: str, value, default) -> str | None:
 def _dir_problem(path: str, value) -> str | None:
   """A non-empty `*_dir` field must name a directory (they are all inputs)."""
   if path.rsplit(".", 1)[-1].endswith("_dir") and isinstance(value, str) and value:
-    if not Path(value).is_dir():
-      return "no such directory"
+    try:
+      if not Path(value).is_dir():
+        return "no such directory"
+    except OSError as e:  # e.g. a path component longer than the file system allows
+      return f"no such directory ({e.strerror})"
   return None
 
 
@@ -244,19 +275,29 @@ def writable(path: str | os.PathLike) -> bool:
   return False
 
 
+def _path_validator(name: str, check: Callable[[str], bool], message: str) -> None:
+  """Validator: flag `name` is unset or `check(value)`; an OSError of the check (a name
+  too long, ...) fails the flag with `message` and the OS's reason."""
+
+  def verify(value):
+    try:
+      return value is None or check(value)
+    except OSError as e:
+      raise flags.ValidationError(f"{message} ({e.strerror})") from e
+  flags.register_validator(name, verify, message)
+
+
 def input_dirs(*names: str) -> None:
   """Validators: each flag of `names`, when set, names an existing directory."""
   for name in names:
-    flags.register_validator(name, lambda v: v is None or Path(v).is_dir(),
-                             "no such directory")
+    _path_validator(name, lambda v: Path(v).is_dir(), "no such directory")
 
 
 def output_dirs(*names: str) -> None:
   """Validators: each flag of `names`, when set, is a directory that can be written or
   created (`writable`)."""
   for name in names:
-    flags.register_validator(name, lambda v: v is None or writable(v),
-                             "cannot create or write a directory there")
+    _path_validator(name, writable, "cannot create or write a directory there")
 
 
 def presets(name: str, get_config: Callable) -> None:

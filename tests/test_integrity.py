@@ -2,8 +2,11 @@
 byte-identical, corrupted files and checkpoints are refused naming the file, and a
 denoiser only pairs with the exact tokeniser checkpoint it was trained on."""
 
+import contextlib
+import errno
 import hashlib
 import json
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -19,7 +22,7 @@ from cvmdx_jax import sharding
 from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.runs import tokens
 from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
-from cvmdx_jax.storage import checkpointing, checksums, locking
+from cvmdx_jax.storage import atomic, checkpointing, checksums, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.data import dataset
@@ -219,3 +222,29 @@ def test_checksummed_writes_leave_a_verifiable_manifest(tmp_path):
   path.write_text('{"a": 3}\n')
   with pytest.raises(CorruptRunError, match="x.json"):
     checksums.read_json(path)
+
+
+def test_a_failed_group_write_leaves_files_and_manifest_as_they_were(tmp_path, monkeypatch):
+  checksums.write_json(tmp_path / "metrics.json", {"a": 1})
+  (tmp_path / "old.png").write_bytes(b"old")
+  before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+  real = atomic.writing
+
+  @contextlib.contextmanager
+  def full_at_png(path, mode="wb"):
+    with real(path, mode) as f:
+      if Path(path).suffix == ".png":
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+      yield f
+  monkeypatch.setattr(atomic, "writing", full_at_png)
+  files = {tmp_path / "metrics.json": b'{"a": 2}\n', tmp_path / "old.png": b"new"}
+  for directory in (tmp_path, tmp_path / "fresh"):
+    directory.mkdir(exist_ok=True)
+    with pytest.raises(OSError, match="No space left"):
+      checksums.write_all({directory / p.name: data for p, data in files.items()})
+  assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+  assert list((tmp_path / "fresh").iterdir()) == []
+  monkeypatch.setattr(atomic, "writing", real)
+  checksums.write_all(files)
+  assert checksums.read_json(tmp_path / "metrics.json") == {"a": 2}
+  assert checksums.read_bytes(tmp_path / "old.png") == b"new"

@@ -1,11 +1,14 @@
 """Smoke test of the whole pipeline on tiny configs: SUMO data -> tokeniser ->
 diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
 
+import contextlib
 import dataclasses
+import errno
 import json
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import jax
@@ -20,7 +23,7 @@ from cvmdx_jax import ego_motion
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
-from cvmdx_jax.storage import checkpointing
+from cvmdx_jax.storage import atomic, checkpointing
 from cvmdx_jax.evaluation import report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
@@ -107,6 +110,33 @@ def test_report_sampling_overrides_reach_the_predictor(runs):
   table = (runs / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
   assert "out of distribution" in table and "Spearman" in table
+
+
+def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
+  """ENOSPC while writing a figure: a fresh workdir is not left behind, an earlier
+  report stays byte-identical; no temporaries either way."""
+  kwargs = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+                data_dir=runs / "data", max_scenarios=6, ddpm_scenarios=0)
+  real = atomic.writing
+
+  @contextlib.contextmanager
+  def full_at_a_figure(path, mode="wb"):
+    with real(path, mode) as f:
+      if Path(path).name != "predictions_lcr.png":
+        yield f
+      else:
+        yield types.SimpleNamespace(write=lambda data: (_ for _ in ()).throw(
+            OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+  fresh, kept = tmp_path / "fresh", tmp_path / "kept"
+  report.run(workdir=kept, seed=1, **kwargs)
+  before = {p.name: p.read_bytes() for p in kept.iterdir()}
+  assert {"metrics.json", "results.md", "predictions_lcr.png", "checksums.json"} <= set(before)
+  monkeypatch.setattr(atomic, "writing", full_at_a_figure)
+  for workdir in (fresh, kept):
+    with pytest.raises(OSError, match="No space left"):
+      report.run(workdir=workdir, seed=0, **kwargs)
+  assert not fresh.exists()  # the lock removes the directory it made, left empty
+  assert {p.name: p.read_bytes() for p in kept.iterdir()} == before
 
 
 def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatch, capsys):

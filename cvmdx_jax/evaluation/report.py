@@ -3,10 +3,13 @@
 Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}}},
 methods `scoring.METHODS`, subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
-`predictions_<class><suffix>.png` (Fig. 1 style) and `kl_vs_usage<suffix>.png` (Fig. 3
-style). Every input is checked before anything is written, non-finite predictions stop
-the run (`scoring.NonFinitePredictionError`) before anything is written, and each file
-is written atomically.
+`predictions_<class><suffix>.png` (Fig. 1 style, for the classes present) and
+`kl_vs_usage<suffix>.png` (Fig. 3 style). Every input is checked before anything is
+written, non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before
+anything is written, and the report is written as a whole or not at all: every file is
+rendered in memory, then written as one group (`checksums.write_all`), so a failure (a
+full disk) leaves the previous report of this suffix, or none, and no temporary; a
+class figure of the previous report that this one lacks is removed.
 """
 
 import dataclasses
@@ -84,12 +87,16 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   q_count = predictor.tokenizer.config.quantizer.codebook_size
   usage = np.bincount(usage_tokens.q, minlength=q_count)
   token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
-  fit = figures.plot_kl_vs_usage(workdir / f"kl_vs_usage{suffix}.png", token_kl,
-                                 f"Q = {q_count}, split {split}")
+  kl_png, fit = figures.plot_kl_vs_usage(token_kl, f"Q = {q_count}, split {split}")
+  pngs = {workdir / f"kl_vs_usage{suffix}.png": kl_png}
+  stale = []
   for c, name in enumerate(constants.CLASS_NAMES):
     idx = np.flatnonzero(scenarios.label == c)[:figures_per_class]
+    path = workdir / f"predictions_{name}{suffix}.png"
     if len(idx):
-      figures.plot_predictions(workdir / f"predictions_{name}{suffix}.png", scenarios, out, idx)
+      pngs[path] = figures.plot_predictions(scenarios, out, idx)
+    else:
+      stale.append(path)
 
   meta = {"split": split, "num_scenarios": len(scenarios), "seed": seed,
           "sampling": dataclasses.asdict(predictor.sampling),
@@ -101,8 +108,11 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
               "delta_limit": predictor.delta_limit,
               "count": int(out.out_of_distribution.sum()),
               "share": float(out.out_of_distribution.mean())}}
-  checksums.write_json(workdir / f"metrics{suffix}.json", {**results, "_meta": meta})
-  atomic.write_text(workdir / f"results{suffix}.md", scoring.markdown_tables(results))
+  checksums.write_all({  # metrics.json first: renamed last
+      workdir / f"metrics{suffix}.json": atomic.json_text({**results, "_meta": meta}).encode(),
+      workdir / f"results{suffix}.md": scoring.markdown_tables(results).encode(), **pngs})
+  for path in stale:
+    path.unlink(missing_ok=True)
   return results
 
 

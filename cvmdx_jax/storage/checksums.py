@@ -15,6 +15,7 @@ below a directory that another writer (orbax) made, with relative paths as names
 Format helpers: `write_json` / `read_json`, `write_npz` / `read_npz`.
 """
 
+import contextlib
 import hashlib
 import io
 import json
@@ -70,15 +71,36 @@ def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
   atomic.write_json(directory / MANIFEST, manifest, indent=1, sort_keys=True)
 
 
+def write_all(files: dict[str | os.PathLike, bytes]) -> None:
+  """Writes {path: bytes} of one existing directory as a group (`atomic.write_all`: all
+  new or all old) and records every digest; after a failure the manifest is as before
+  (or absent, as before)."""
+  paths = [Path(p) for p in files]
+  directory = paths[0].parent
+  if any(p.parent != directory for p in paths):
+    raise ValueError(f"checksums.write_all: files of several directories: {paths}")
+  manifest, fresh = _read_manifest(directory), not (directory / MANIFEST).exists()
+  before = dict(manifest)
+  digests = {p.name: sha256(data) for p, data in zip(paths, files.values())}
+  for name, digest in digests.items():
+    manifest[name] = sorted({*_digests(manifest.get(name)), digest})
+  _write_manifest(directory, manifest)
+  try:
+    atomic.write_all(files)
+  except BaseException:
+    if fresh:
+      (directory / MANIFEST).unlink()
+    else:  # if even this fails, the extra digests are harmless: the old ones are listed
+      with contextlib.suppress(OSError):
+        _write_manifest(directory, before)
+    raise
+  manifest.update(digests)
+  _write_manifest(directory, manifest)
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
   """Writes `data` atomically to `path` and records its digest; the directory must exist."""
-  path = Path(path)
-  digest, manifest = sha256(data), _read_manifest(path.parent)
-  manifest[path.name] = sorted({*_digests(manifest.get(path.name)), digest})
-  _write_manifest(path.parent, manifest)
-  atomic.write_bytes(path, data)
-  manifest[path.name] = digest
-  _write_manifest(path.parent, manifest)
+  write_all({path: data})
 
 
 def read_bytes(path: str | os.PathLike) -> bytes:
@@ -104,7 +126,7 @@ def read_bytes(path: str | os.PathLike) -> bytes:
 
 def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
   """`value` as JSON (indent 2 unless `kwargs` say otherwise), checksummed."""
-  write_bytes(path, (json.dumps(value, **{"indent": 2, **kwargs}) + "\n").encode())
+  write_bytes(path, atomic.json_text(value, **kwargs).encode())
 
 
 def read_json(path: str | os.PathLike) -> Any:
