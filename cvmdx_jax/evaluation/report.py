@@ -29,6 +29,19 @@ from cvmdx_jax.inference.predictor import Predictor
 
 
 @locking.holds("workdir")
+def _sampling_meta(predictor: Predictor) -> dict:
+  """The sampling settings of a report with the denoiser's control scale, conditioning and
+  residual base among them (where metrics.json has always listed them)."""
+  targets = predictor.denoiser.config.diffusion
+  out = {}
+  for name, value in dataclasses.asdict(predictor.sampling).items():
+    out[name] = value
+    if name == "clip_x0":
+      out.update(control_scale=targets.control_scale, conditioning=targets.conditioning,
+                 residual_decay_s=targets.residual_decay_s)
+  return out
+
+
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
         figures_per_class: int = 3, sampling_overrides=None, suffix: str = "") -> dict:
@@ -99,7 +112,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
       stale.append(path)
 
   meta = {"split": split, "num_scenarios": len(scenarios), "seed": seed,
-          "sampling": dataclasses.asdict(predictor.sampling),
+          "sampling": _sampling_meta(predictor),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q))),
