@@ -236,6 +236,13 @@ def test_predictor_refuses_bad_scenarios(runs):
     predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": xi}))
   with pytest.raises(ValueError, match="'xi' has shape"):
     predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": scenarios.xi[:, :, :50]}))
+  for seed in (2**32, -1, True):
+    with pytest.raises(ValueError, match=r"^seed="):
+      predictor(scenarios, seed=seed)
+  mask = scenarios.mask.copy()
+  mask[1, 0, -1] = False
+  with pytest.raises(ValueError, match="ego absent at t0.*scenario 1"):
+    predictor(scenarios.__class__(**{**scenarios.as_dict(), "mask": mask}))
 
 
 def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):
