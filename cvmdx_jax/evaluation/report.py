@@ -3,8 +3,8 @@
 Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}}},
 methods `scoring.METHODS`, subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
-`predictions_<class><suffix>.png` (Fig. 1 style) and `kl_vs_usage<suffix>.png` (Fig. 3
-style). Every input is checked before anything is written, non-finite predictions stop
+`predictions_<class><suffix>.png` (Fig. 1 style), `kl_vs_usage<suffix>.png` (Fig. 3
+style) and `reliability<suffix>.png` (calibration of the hypothesis probabilities). Every input is checked before anything is written, non-finite predictions stop
 the run (`scoring.NonFinitePredictionError`) before anything is written, and each file
 is written atomically.
 """
@@ -67,6 +67,10 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
                                                scenarios.label)
   for subset, row in correlation.items():
     results["cvmdx_mean"][subset].update(row)
+  hyp = out.hypotheses
+  ece, diagram = scoring.calibration(hyp.means, hyp.probs, gt, scenarios.label)
+  for subset, row in ece.items():
+    results["cvmdx_best_of_k"][subset].update(row)
   if ddpm_scenarios:
     idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
@@ -84,6 +88,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
   fit = figures.plot_kl_vs_usage(workdir / f"kl_vs_usage{suffix}.png", token_kl,
                                  f"Q = {q_count}, split {split}")
+  figures.plot_reliability(workdir / f"reliability{suffix}.png", diagram,
+                           f"{predictor.sampling.hypotheses.method}, split {split}")
   for c, name in enumerate(constants.CLASS_NAMES):
     idx = np.flatnonzero(scenarios.label == c)[:figures_per_class]
     if len(idx):
@@ -93,7 +99,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "sampling": dataclasses.asdict(predictor.sampling),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
-          "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q))),
+          "kl_power_law_fit": fit, "reliability": diagram, "tokens_in_use_on_split": int(len(np.unique(out.q))),
           "out_of_distribution": {
               "rule": "delta > delta_limit, the largest delta over the tokeniser's train split",
               "delta_limit": predictor.delta_limit,
