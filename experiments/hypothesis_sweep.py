@@ -47,6 +47,9 @@ _METHODS = flags.DEFINE_list("methods", ["bic", "kmeans:0", "kmeans:0.5", "kmean
                              "'bic' or 'kmeans:<endpoint_weight>'.")
 _TIMING = flags.DEFINE_integer("timing_scenarios", 64, "Scenarios of the timing calls.",
                                lower_bound=1)
+_SAMPLES_FILE = flags.DEFINE_string(
+    "samples_file", None, "An .npz of the samples: read if it exists (the sampling is "
+    "skipped), else written after sampling, so that more methods can be scored later.")
 _TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative mean-ADE loss vs the "
                           "reference.", lower_bound=0.0)
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score",
@@ -98,9 +101,18 @@ def sweep() -> tuple[list[dict], str, int]:
   counts = sorted(int(n) for n in _SAMPLES.value)
   configs = {spec: hypothesis_config(spec, predictor.sampling.hypotheses)
              for spec in _METHODS.value}
-  full = dataclasses.replace(predictor, sampling=dataclasses.replace(
-      predictor.sampling, num_samples=counts[-1]))
-  samples = jnp.asarray(full(data, seed=_SEED.value).prediction.trajectories)
+  saved = Path(_SAMPLES_FILE.value) if _SAMPLES_FILE.value else None
+  if saved and saved.is_file():
+    samples = jnp.asarray(np.load(saved)["trajectories"])
+    if samples.shape[:2] != (len(data), counts[-1]):
+      raise ValueError(f"--samples_file {saved}: shape {samples.shape} does not match "
+                       f"{len(data)} scenarios x {counts[-1]} samples")
+  else:
+    full = dataclasses.replace(predictor, sampling=dataclasses.replace(
+        predictor.sampling, num_samples=counts[-1]))
+    samples = jnp.asarray(full(data, seed=_SEED.value).prediction.trajectories)
+    if saved:
+      atomic.write_npz(saved, trajectories=np.asarray(samples))
   timing = data.take(np.arange(min(_TIMING.value, len(data))))
   fit = jax.jit(fit_hypotheses, static_argnames=("c_max", "config"))
   rows = []
