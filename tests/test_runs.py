@@ -16,6 +16,7 @@ from cvmdx_jax.config_dataclass import to_dataclass
 from cvmdx_jax.diffusion import GuidanceConfig
 from cvmdx_jax.inference import SamplingConfig
 from cvmdx_jax.models import unet1d
+from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,6 +50,12 @@ def test_run_configs_become_the_model_and_sampling_settings():
   assert sampling.guidance.w_max_base == 0.5
   assert (sampling.sampler, sampling.steps) == ("dpmpp2m", 3)  # chosen on val (BUILD_NOTES)
   assert tuple(demo.diffusion.class_weights) == (3.0, 1.0, 1.0)  # chosen on val
+  # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
+  assert (sampling.num_samples, sampling.hypotheses.method) == (36, "kmeans")
+  assert sampling.hypotheses.endpoint_weight == 0.5
+  for preset in ("paper", "reference"):
+    paper = runs.sampling_config(diffusion_config.get_config(preset))
+    assert (paper.num_samples, paper.hypotheses) == (9, HypothesisConfig())
   assert tuple(diffusion_config.get_config("paper").diffusion.class_weights) == (1.0, 1.0, 1.0)
   demo.sampling.clip_x0 = 0.0  # 0 = no clipping
   assert runs.sampling_config(demo).clip_x0 is None
