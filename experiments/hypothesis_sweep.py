@@ -13,8 +13,9 @@ Cost: the prediction time per scenario of the full pipeline with N samples (the 
 sampler, BIC hypotheses) on --timing_scenarios scenarios after a warm-up call, and the
 hypothesis step alone per method (jitted, after a warm-up), on this machine.
 
-Choice rule: among the settings whose mean-of-N ADE is within --tolerance of the
-reference's (the run's own N with "bic", today's default), the lowest Brier-minFDE.
+Choice rule: among the settings with N <= --max_num_samples (the cost bound) whose mean-of-N
+ADE is within --tolerance of the reference's (the run's own N with "bic", today's default),
+the lowest Brier-minFDE.
 Writes <out_dir>/sweep.md and sweep.json.
 """
 
@@ -50,6 +51,8 @@ _TIMING = flags.DEFINE_integer("timing_scenarios", 64, "Scenarios of the timing 
 _SAMPLES_FILE = flags.DEFINE_string(
     "samples_file", None, "An .npz of the samples: read if it exists (the sampling is "
     "skipped), else written after sampling, so that more methods can be scored later.")
+_MAX_N = flags.DEFINE_integer("max_num_samples", 0, "Largest N the choice may take (the cost "
+                              "bound; 0 = any).", lower_bound=0)
 _TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative mean-ADE loss vs the "
                           "reference.", lower_bound=0.0)
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score",
@@ -132,14 +135,16 @@ def sweep() -> tuple[list[dict], str, int]:
   return rows, note, predictor.sampling.num_samples
 
 
-def choose(rows: list[dict], reference: dict, tolerance: float) -> dict:
-  """The lowest Brier-minFDE among rows whose mean ADE is <= (1 + tolerance) x the
-  reference row's."""
-  ok = [r for r in rows if r["mean_ade"] <= (1.0 + tolerance) * reference["mean_ade"]]
+def choose(rows: list[dict], reference: dict, tolerance: float, max_num_samples: int = 0) -> dict:
+  """The lowest Brier-minFDE among rows with num_samples <= max_num_samples (0 = any)
+  whose mean ADE is <= (1 + tolerance) x the reference row's."""
+  ok = [r for r in rows if r["mean_ade"] <= (1.0 + tolerance) * reference["mean_ade"]
+        and (not max_num_samples or r["num_samples"] <= max_num_samples)]
   return min(ok, key=lambda r: (r["brier_min_fde"], r["num_samples"]))
 
 
-def markdown(rows: list[dict], choice: dict, note: str, tolerance: float) -> str:
+def markdown(rows: list[dict], choice: dict, note: str, tolerance: float,
+             max_num_samples: int = 0) -> str:
   """One row per (method, N), the chosen one marked."""
   lines = [f"Hypothesis sweep: {note}", "",
            "| method | N | mean ADE | mean FDE | minADE_K | minFDE_K | Brier-minFDE | energy "
@@ -151,9 +156,10 @@ def markdown(rows: list[dict], choice: dict, note: str, tolerance: float) -> str
                  + " | ".join(f"{r[c]:.3f}" for c in COLUMNS)
                  + f" | {r['single_mode_share']:.2f} | {r['predict_s']:.4f} | "
                  f"{1e3 * r['hypotheses_s']:.3f} |")
+  bound = f" among N <= {max_num_samples}" if max_num_samples else ""
   lines += ["", f"Chosen: {choice['method']} with N = {choice['num_samples']}, the lowest "
-            f"Brier-minFDE whose mean ADE is within {100 * tolerance:g} % of the reference's "
-            "(chosen on val)."]
+            f"Brier-minFDE{bound} whose mean ADE is within {100 * tolerance:g} % of the "
+            "reference's (chosen on val)."]
   return "\n".join(lines) + "\n"
 
 
@@ -168,12 +174,13 @@ def main(argv):
   if not ref:
     raise ValueError(f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
                      "evaluated; include it in --methods and --num_samples")
-  choice = choose(rows, ref[0], _TOL.value)
+  choice = choose(rows, ref[0], _TOL.value, _MAX_N.value)
   out = Path(_OUT.value)
   out.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(out / "sweep.json", {"note": note, "tolerance": _TOL.value, "rows": rows,
+  atomic.write_json(out / "sweep.json", {"note": note, "tolerance": _TOL.value,
+                                         "max_num_samples": _MAX_N.value, "rows": rows,
                                          "choice": choice})
-  table = markdown(rows, choice, note, _TOL.value)
+  table = markdown(rows, choice, note, _TOL.value, _MAX_N.value)
   atomic.write_text(out / "sweep.md", table)
   print(table)
 

@@ -24,3 +24,4 @@ def test_choice_is_the_lowest_brier_within_the_mean_ade_tolerance():
           {"method": "kmeans:0", "num_samples": 64, "mean_ade": 1.03, "brier_min_fde": 1.6}]
   assert hypothesis_sweep.choose(rows, ref, 0.02) is rows[2]  # 64 is 3 % worse
   assert hypothesis_sweep.choose(rows, ref, 0.05) is rows[3]
+  assert hypothesis_sweep.choose(rows, ref, 0.05, max_num_samples=36) is rows[2]

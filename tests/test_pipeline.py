@@ -69,7 +69,8 @@ def test_report_has_every_method_subset_and_figure(runs):
   assert 0 <= best["all"]["target_lane_hit"] <= 1
   for subset in scoring.SUBSETS:
     assert 0 <= best[subset]["ece"] <= 1 and np.isfinite(best[subset]["nll_final"])
-    assert 0 <= saved["cvmdx_mean"][subset]["energy_score"] < np.inf  # >= 0: triangle inequality
+    # >= 0 by the triangle inequality
+    assert 0 <= saved["cvmdx_mean"][subset]["energy_score"] < np.inf
   diagram = saved["_meta"]["reliability"]
   assert sum(diagram["count"]) >= 30 and len(diagram["accuracy"]) == 10
   assert (runs / "eval" / "reliability.png").stat().st_size > 1000

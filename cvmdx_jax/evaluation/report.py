@@ -4,7 +4,8 @@ Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}
 methods `scoring.METHODS`, subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
 `predictions_<class><suffix>.png` (Fig. 1 style), `kl_vs_usage<suffix>.png` (Fig. 3
-style) and `reliability<suffix>.png` (calibration of the hypothesis probabilities). Every input is checked before anything is written, non-finite predictions stop
+style) and `reliability<suffix>.png` (calibration of the hypothesis probabilities).
+Every input is checked before anything is written, non-finite predictions stop
 the run (`scoring.NonFinitePredictionError`) before anything is written, and each file
 is written atomically.
 """
@@ -99,7 +100,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "sampling": dataclasses.asdict(predictor.sampling),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
-          "kl_power_law_fit": fit, "reliability": diagram, "tokens_in_use_on_split": int(len(np.unique(out.q))),
+          "kl_power_law_fit": fit, "reliability": diagram,
+          "tokens_in_use_on_split": int(len(np.unique(out.q))),
           "out_of_distribution": {
               "rule": "delta > delta_limit, the largest delta over the tokeniser's train split",
               "delta_limit": predictor.delta_limit,

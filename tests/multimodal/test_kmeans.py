@@ -49,7 +49,8 @@ def test_agrees_with_sklearn_kmeans_from_the_same_seeds(endpoint_weight):
 def test_farthest_point_seeds_are_the_hand_worked_ones():
   points = np.array([[0.0], [2.0], [3.0], [5.0], [9.0]], np.float32)
   # centroid 3.8: 9 is farthest; then 0 (9 from 9); then 5 (min distance 4 to {9, 0})
-  np.testing.assert_array_equal(np.asarray(gmm.farthest_point_seeds(jnp.asarray(points), 3)), [4, 0, 3])
+  seeds = gmm.farthest_point_seeds(jnp.asarray(points), 3)
+  np.testing.assert_array_equal(np.asarray(seeds), [4, 0, 3])
 
 
 def test_hand_worked_lloyd_steps():
