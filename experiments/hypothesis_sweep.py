@@ -1,7 +1,7 @@
 """Hypothesis methods x sample counts on one trained run's validation split; picks the
 default hypothesis method and N.
 
-  PYTHONPATH=. .venv/bin/python experiments/hypothesis_sweep.py \\
+  .venv/bin/python experiments/hypothesis_sweep.py \\
       --tokenizer_dir=runs/demo/tokenizer --diffusion_dir=runs/demo/diffusion \\
       --data_dir=runs/demo/data --out_dir=runs/demo/hypothesis_sweep
 
@@ -28,12 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
 from cvmdx_jax.evaluation import scoring
-from cvmdx_jax.inference import Prediction
+from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
+from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal import HypothesisConfig, fit_hypotheses
-from cvmdx_jax.predict import Predictor, PredictorOutput
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")

@@ -1,6 +1,6 @@
 """The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion -> evaluation report.
 
-  make demo        (= PYTHONPATH=. .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
+  make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
 Writes runs/demo/{data, tokenizer, diffusion}/ and two reports in the same schema: the
 test split's (metrics.json, results.md, predictions_<class>.png, kl_vs_usage.png) and
@@ -23,6 +23,7 @@ from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -58,12 +59,12 @@ def main(argv):
   _stage(f"2/4 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
   tok_cfg = tokenizer_config.get_config(_TOKENIZER.value)
   tok_cfg.data_dir = str(data_dir)
-  tokenizer_train.train_and_evaluate(tok_cfg, tok_dir)
+  tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
   _stage(f"3/4 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  diffusion_train.train_and_evaluate(diff_cfg, diff_dir)
+  diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
 
   _stage(f"4/4 evaluation on the test and test_ood splits -> {root}", start)
   files = []
@@ -79,4 +80,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

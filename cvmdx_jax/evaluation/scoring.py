@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from cvmdx_jax import constants, metrics
+from cvmdx_jax import constants
+from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
 from cvmdx_jax.evaluation import probabilistic
 

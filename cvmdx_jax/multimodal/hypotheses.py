@@ -17,16 +17,19 @@ component index), so slot 0 is the most likely hypothesis and slots
 """
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import kmeans
 from cvmdx_jax.multimodal import pca
 from cvmdx_jax.multimodal import scaling
 
 METHODS = ("bic", "kmeans")
+
 
 @dataclasses.dataclass(frozen=True)
 class HypothesisConfig:
@@ -66,28 +69,17 @@ class HypothesisConfig:
   kmeans_iters: int = 10
   endpoint_weight: float = 0.0
 
+  RANGES: ClassVar = {"c_max": POSITIVE, "x_scale": POSITIVE, "y_scale": POSITIVE,
+                      "pca_dim": POSITIVE, "reg_covar": POSITIVE, "em_iters": NON_NEGATIVE,
+                      "kmeans_iters": NON_NEGATIVE, "endpoint_weight": FRACTION}
+
   def __post_init__(self):
     if self.method not in METHODS:
       raise ValueError(f"HypothesisConfig.method must be one of {METHODS}, got {self.method!r}")
-    if self.c_max < 1:
-      raise ValueError(f"HypothesisConfig.c_max must be >= 1, got {self.c_max}")
     if self.scaling not in scaling.SCALINGS:
       raise ValueError(
           f"HypothesisConfig.scaling must be one of {scaling.SCALINGS}, got {self.scaling!r}")
-    if self.x_scale <= 0 or self.y_scale <= 0:
-      raise ValueError("HypothesisConfig.x_scale and y_scale must be > 0, got "
-                       f"{self.x_scale}, {self.y_scale}")
-    if self.pca_dim < 1:
-      raise ValueError(f"HypothesisConfig.pca_dim must be >= 1, got {self.pca_dim}")
-    if self.reg_covar <= 0:
-      raise ValueError(f"HypothesisConfig.reg_covar must be > 0, got {self.reg_covar}")
-    if self.em_iters < 0:
-      raise ValueError(f"HypothesisConfig.em_iters must be >= 0, got {self.em_iters}")
-    if self.kmeans_iters < 0:
-      raise ValueError(f"HypothesisConfig.kmeans_iters must be >= 0, got {self.kmeans_iters}")
-    if not 0.0 <= self.endpoint_weight <= 1.0:
-      raise ValueError("HypothesisConfig.endpoint_weight must be in [0, 1], got "
-                       f"{self.endpoint_weight}")
+    check_ranges(self, self.RANGES)
 
 
 @jax.tree_util.register_dataclass

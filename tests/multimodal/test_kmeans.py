@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from sklearn import cluster
 
+from cvmdx_jax.config_dataclass import ConfigFieldError
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import kmeans
-from cvmdx_jax.multimodal import synthetic
+from tests.multimodal import synthetic
 
 KMEANS = HypothesisConfig(method="kmeans")
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
@@ -124,7 +125,9 @@ def test_endpoint_weight_defines_the_distance():
 def test_bad_settings_are_refused():
   with pytest.raises(ValueError, match="method"):
     HypothesisConfig(method="medoids")
-  with pytest.raises(ValueError, match="endpoint_weight"):
+  with pytest.raises(ConfigFieldError, match="must be in") as error:
     HypothesisConfig(method="kmeans", endpoint_weight=1.5)
-  with pytest.raises(ValueError, match="kmeans_iters"):
+  assert error.value.field == "endpoint_weight"
+  with pytest.raises(ConfigFieldError, match="must be >= 0") as error:
     HypothesisConfig(method="kmeans", kmeans_iters=-1)
+  assert error.value.field == "kmeans_iters"
