@@ -80,6 +80,13 @@ def test_report_has_every_method_subset_and_figure(runs):
     assert best[subset]["fde"] <= best[subset]["brier_min_fde"] <= best[subset]["fde"] + 1
     assert ("target_lane_hit" in best[subset]) == (subset != "kl")
   assert 0 <= best["all"]["target_lane_hit"] <= 1
+  for subset in scoring.SUBSETS:
+    assert 0 <= best[subset]["ece"] <= 1 and np.isfinite(best[subset]["nll_final"])
+    # >= 0 by the triangle inequality
+    assert 0 <= saved["cvmdx_mean"][subset]["energy_score"] < np.inf
+  diagram = saved["_meta"]["reliability"]
+  assert sum(diagram["count"]) >= 30 and len(diagram["accuracy"]) == 10
+  assert (runs / "eval" / "reliability.png").stat().st_size > 1000
   mean = saved["cvmdx_mean"]
   assert 0 <= mean["all"]["out_of_distribution"] <= 1
   assert -1 <= mean["all"]["delta_ade_spearman"] <= 1
@@ -110,6 +117,7 @@ def test_report_sampling_overrides_reach_the_predictor(runs):
   table = (runs / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
   assert "out of distribution" in table and "Spearman" in table
+  assert "energy score of N [m]" in table and "ECE of p(c)" in table
 
 
 def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
