@@ -191,6 +191,10 @@ CONFIG_RANGES = {
     "sampling.hypotheses.x_scale": _positive, "sampling.hypotheses.y_scale": _positive,
     "sampling.hypotheses.pca_dim": _positive, "sampling.hypotheses.reg_covar": _positive,
     "sampling.hypotheses.em_iters": _positive,
+    # configs/baseline.py
+    "model.num_hypotheses": _positive, "model.token_dim": _positive, "model.hidden": _positive,
+    "model.control_scale": _positive, "model.residual_decay_s": _positive,
+    "loss.cls_weight": _non_negative, "train.end_lr_fraction": _fraction,
     # configs/dataset.py
     "mat_val_fraction": _below_one, "extraction.seed": _seed, "splits.train": _positive,
     "splits.val": _positive, "splits.test": _positive, "splits.test_ood": _positive,

@@ -23,6 +23,7 @@ cli.output_dirs("workdir")
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  baseline.check_select(_CONFIG.value.train.select_metric)  # before the workdir is made
   sharding.initialize_distributed()
   logging.info("JAX devices: %s", jax.devices())
   baseline.train_and_evaluate(_CONFIG.value, _WORKDIR.value)

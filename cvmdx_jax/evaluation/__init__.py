@@ -1,6 +1,7 @@
 """Evaluation: baselines, scores per method and class, figures, and the report run.
 
   baselines  constant velocity, constant acceleration + yaw rate, token-mean controls
+  learned_baseline  the multiple-choice MLP's run directory, predictions and report rows
   scoring    per-scenario errors per method -> {method: {subset: {metric}}}, tables, KL per token
   figures    paper Fig. 1 (predictions) and Fig. 3 (KL vs codebook usage) style PNGs
   report     `run`: one evaluation of trained runs -> metrics.json, results.md, figures

@@ -154,6 +154,14 @@ def check_tokenizer(baseline: LearnedBaseline, tokenizer: runs.TokenizerBundle,
         f"{tokenizer.config.quantizer.codebook_size}; retrain it on this tokeniser's tokens")
 
 
+def scenario_errors(baseline: LearnedBaseline, q, delta, scenarios) -> dict:
+  """Per-scenario errors of the rows `METHODS` on `scenarios` with tokens q (M,) and delta
+  (M,) of the evaluated tokeniser (`errors`)."""
+  trajectories, probs = baseline(q, delta, scenarios.xi, scenarios.mask, scenarios.v0,
+                                 scenarios.psi0)
+  return errors(trajectories, probs, scenarios.future, scenarios.label)
+
+
 def errors(trajectories, probs, gt, labels) -> dict:
   """Per-scenario errors of the rows `METHODS`: trajectories (M, K, T, 2), probs (M, K),
   gt (M, T, 2), labels (M,) -> {method: {metric: (M,)}} (`scoring` metrics)."""
