@@ -3,14 +3,17 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-export PYTHONPATH := $(CURDIR)
 
 .PHONY: install demo test test-slow benchmark clean
 
+# The pinned dependencies, then this project editable (cvmdx_jax and configs importable from
+# anywhere; edits take effect without reinstalling). setuptools >= 70.1 builds it without
+# the wheel package; --no-deps: the lock already holds every dependency.
 $(STAMP): requirements.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q --upgrade pip "setuptools>=70.1"
 	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
 install: $(STAMP)

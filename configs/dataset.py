@@ -1,6 +1,6 @@
 """Dataset settings for experiments/make_dataset.py.
 
-Run: `PYTHONPATH=. .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py
+Run: `.venv/bin/python experiments/make_dataset.py --config=configs/dataset.py
 --data_dir=data/sumo` (presets after the path: `:small` for the demo, `:tiny` for tests;
 other sources with `--config.source=highd --config.highd_dir=/path/to/highD/data` or
 `--config.source=cvmd_mat --config.mat_dir=/path/with/train_and_test`).

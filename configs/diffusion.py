@@ -1,7 +1,7 @@
 """Motion diffusion model (U-Net denoiser + sampling) config.
 
 Run (after make_dataset and train_tokenizer):
-  PYTHONPATH=. .venv/bin/python experiments/train_diffusion.py \\
+  .venv/bin/python experiments/train_diffusion.py \\
       --config=configs/diffusion.py:demo --workdir=runs/demo/diffusion \\
       --config.data_dir=runs/demo/data --config.tokenizer_dir=runs/demo/tokenizer
 Presets after the path: `:tiny` (seconds, tests), `:demo` (the CPU default of the

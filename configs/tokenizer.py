@@ -1,7 +1,7 @@
 """Scenario tokeniser (CVQ-VAE + maneuver head) config.
 
 Run:
-  PYTHONPATH=. .venv/bin/python experiments/train_tokenizer.py \
+  .venv/bin/python experiments/train_tokenizer.py \
       --config=configs/tokenizer.py --workdir=runs/tokenizer
 Presets after the path: `:tiny` (seconds, for tests), `:demo` (CPU-sized, a few minutes on
 2 cores on the ~7k-train-scenario small SUMO dataset), `:paper` (the paper's batch 64, lr 4.5e-6,

@@ -5,18 +5,27 @@ A user's mistake ends the same way in every script: one line
 no traceback. User errors are
 - flag errors, found before `main` starts: an unknown flag, a value of the wrong type
   or out of range (`lower_bound=`, validators), a required flag left out, an unknown
-  config preset or field, a config file that cannot be loaded, a config field out of
-  range (`CONFIG_RANGES`), a `*_dir` config field that is not a directory;
+  config preset or field, a config file that cannot be loaded, a config field that is
+  not finite or out of range (the ranges live in the typed configs: `typed_config`
+  builds one at parsing, e.g. `runs.config.DiffusionConfig.from_config`), a `*_dir`
+  config field that is not a directory;
 - in `main`: `app.UsageError` (stray arguments), a `ValueError` raised by this
   repository's code (`DataError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
   `WorkdirLockedError`, ...: their messages name the file or field) and a missing or
   unwritable path (`FileNotFoundError`, `NotADirectoryError`, `PermissionError`, ...).
+The machine failing ends the same way, exit status 2, wherever it is raised: an OSError
+with errno ENOSPC, EDQUOT (disk or quota full), EROFS (read-only file system) or
+ENAMETOOLONG, also one from a flag's path check, and an error of orbax/tensorstore whose
+message carries such an errno (`[os_error_code='28']`, a checkpoint write on a full disk).
+SIGINT (Ctrl-C) prints `<script>: error: interrupted; rerun to resume` and exits with
+status 130; training resumes from its last checkpoint, other steps are redone.
 Anything else keeps its traceback, also a ValueError raised inside a library (a bad
 array handed to numpy or JAX is a bug of ours, not of the user).
 
 Validators for plain flags: `input_dirs`, `output_dirs`, `presets`, `int_list`.
 """
 
+import errno
 import math
 import os
 import re
@@ -31,6 +40,7 @@ from ml_collections import config_flags
 from ml_collections.config_flags.config_flags import is_config_flag
 
 from cvmdx_jax import host_allocator
+from cvmdx_jax.config_dataclass import ConfigFieldError
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
@@ -38,6 +48,9 @@ _REPO = Path(__file__).resolve().parents[1]
 _OUR_CODE = ("cvmdx_jax", "configs", "experiments")
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
                 PermissionError)
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+_MACHINE_ERRNOS = (*_FULL, errno.EROFS, errno.ENAMETOOLONG)
+INTERRUPTED_STATUS = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 
 def _script() -> str:
@@ -73,23 +86,43 @@ def is_user_error(exc: BaseException) -> bool:
   return isinstance(exc, ValueError) and _ours(exc)
 
 
-def run(main: Callable[[list[str]], object]) -> None:
-  """`absl.app.run(main)` with the user-error handling of the module docstring, in a
-  process re-executed once with the allocator of `host_allocator` (Linux)."""
-  try:
-    host_allocator.reexec_with_allocator()
-  except ValueError as e:
-    fail(str(e))
+def machine_failure(exc: BaseException) -> str | None:
+  """The one-line message of a failure of the machine (module docstring), else None."""
+  if isinstance(exc, OSError):
+    code = exc.errno
+  else:  # tensorstore's status text, e.g. "RESOURCE_EXHAUSTED: ... [os_error_code='28']"
+    found = re.search(r"\[os_error_code='(\d+)'\]", str(exc))
+    code = int(found.group(1)) if found else None
+  if code not in _MACHINE_ERRNOS:
+    return None
+  hint = "; free some space and rerun (training resumes from its last checkpoint)"
+  return f"{exc}{hint if code in _FULL else ''}"
+
+
+def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None:
+  """`absl.app.run(main)` with the user-error handling of the module docstring; with
+  `allocator` (the training entry points) in a process re-executed once with the
+  allocator of `host_allocator` (Linux; not for `--help`)."""
+  if allocator:
+    try:
+      host_allocator.reexec_with_allocator()
+    except ValueError as e:
+      fail(str(e))
 
   def guarded(argv):
     try:
       return main(argv)
     except Exception as e:  # pylint: disable=broad-except
-      if not is_user_error(e):
+      message = str(e) if is_user_error(e) else machine_failure(e)
+      if message is None:
         raise
-      fail(str(e))
+      fail(message)
 
-  app.run(guarded, flags_parser=_parse_flags)
+  try:
+    app.run(guarded, flags_parser=_parse_flags)
+  except KeyboardInterrupt:
+    print(f"{_script()}: error: interrupted; rerun to resume", file=sys.stderr)
+    sys.exit(INTERRUPTED_STATUS)
 
 
 # ---------------------------------------------------------------- flag parsing
@@ -133,83 +166,12 @@ def _parse_flags(argv: list[str]) -> list[str]:
       problem = check_config(name)
       if problem:
         fail(problem)
+  for name, typed in _TYPED.items():
+    typed.build(name)
   return rest
 
 
 # ------------------------------------------------------------- config fields
-
-
-def _positive(v) -> bool:
-  return v > 0
-
-
-def _non_negative(v) -> bool:
-  return v >= 0
-
-
-def _fraction(v) -> bool:
-  return 0 <= v <= 1
-
-
-def _below_one(v) -> bool:
-  return 0 <= v < 1
-
-
-def _seed(v) -> bool:
-  return 0 <= v < 2**32  # jax.random.key wraps larger seeds
-
-
-_RULES = {_positive: "> 0", _non_negative: ">= 0", _fraction: "in [0, 1]",
-          _below_one: "in [0, 1)", _seed: "in [0, 2**32)"}
-# Ranges of the numeric fields of configs/*.py that the scripts read (a tuple field: each
-# element); a field a config does not have is skipped. Every float must also be finite.
-CONFIG_RANGES = {
-    # configs/tokenizer.py
-    "encode_batch": _positive, "model.encoder.latent_dim": _positive,
-    "model.encoder.channels": _positive, "model.encoder.kernel_size": _positive,
-    "model.cls_weight": _non_negative, "model.ego_weight": _non_negative,
-    "quantizer.codebook_size": _positive, "quantizer.beta": _non_negative,
-    "quantizer.usage_decay": _fraction, "quantizer.revive_strength": _non_negative,
-    "uncertainty.shrinkage": _non_negative, "uncertainty.ridge": _non_negative,
-    # configs/tokenizer.py and configs/diffusion.py
-    "seed": _seed, "train.batch_size": _positive, "train.num_epochs": _positive,
-    "train.learning_rate": _positive, "train.grad_clip": _non_negative,
-    "train.checkpoint_every": _positive, "train.keep": _positive,
-    # configs/diffusion.py
-    "model.base_channels": _positive, "model.channel_mult": _positive,
-    "model.num_res_blocks": _positive, "model.emb_mult": _positive,
-    "model.num_heads": _positive, "model.groups": _positive, "model.dropout": _below_one,
-    "model.attention_levels": _non_negative,
-    "diffusion.num_steps": _positive, "diffusion.cond_drop_prob": _below_one,
-    "diffusion.control_scale": _positive, "diffusion.residual_decay_s": _positive,
-    "train.warmup_steps": _non_negative, "train.min_lr": _non_negative,
-    "train.weight_decay": _non_negative, "train.ema_decay": _below_one,
-    "sampling.num_samples": _positive, "sampling.steps": _positive,
-    "sampling.eta": _non_negative, "sampling.clip_x0": _non_negative,
-    "sampling.guidance.w_min": _non_negative, "sampling.guidance.w_max_base": _non_negative,
-    "sampling.guidance.t_c": _positive, "sampling.hypotheses.c_max": _positive,
-    "sampling.hypotheses.x_scale": _positive, "sampling.hypotheses.y_scale": _positive,
-    "sampling.hypotheses.pca_dim": _positive, "sampling.hypotheses.reg_covar": _positive,
-    "sampling.hypotheses.em_iters": _positive,
-    # configs/baseline.py
-    "model.num_hypotheses": _positive, "model.token_dim": _positive, "model.hidden": _positive,
-    "model.control_scale": _positive, "model.residual_decay_s": _positive,
-    "loss.cls_weight": _non_negative, "train.end_lr_fraction": _fraction,
-    # configs/dataset.py
-    "mat_val_fraction": _below_one, "extraction.seed": _seed, "splits.train": _positive,
-    "splits.val": _positive, "splits.test": _positive, "splits.test_ood": _positive,
-    "extraction.lc_offsets_s": _positive, "extraction.kl_stride_s": _positive,
-    "extraction.control_smoothing": _non_negative, "extraction.control_iterations": _positive,
-    "sumo.seed": _seed, "sumo.recordings.train": _positive,
-    "sumo.recordings.val": _positive, "sumo.recordings.test": _positive,
-    "sumo.recordings.test_ood": _non_negative, "sumo.workers": _positive,
-    "sumo.warmup_s": _non_negative, "sumo.duration_s": _positive,
-    "sumo.road_length_m": _positive, "sumo.section_length_m": _positive,
-    "sumo.lanes": _positive, "sumo.lane_width_m": _positive,
-    "sumo.speed_limits_kmh": _positive, "sumo.flow_per_lane": _positive,
-    "sumo.truck_share": _fraction, "sumo.car_types": _positive, "sumo.truck_types": _positive,
-    "sumo.held_out.lanes": _positive, "sumo.held_out.duration_s": _positive,
-}
 
 
 def _is_number(v) -> bool:
@@ -234,23 +196,56 @@ def _value_problem(path: str, value, default) -> str | None:
   values = value if isinstance(value, tuple) else (value,)
   if any(isinstance(v, float) and not math.isfinite(v) for v in values):
     return "must be finite"
-  rule = CONFIG_RANGES.get(path)
-  if rule is not None and not all(rule(v) for v in values if _is_number(v)):
-    return f"must be {_RULES[rule]}"
   return None
 
 
 def _dir_problem(path: str, value) -> str | None:
   """A non-empty `*_dir` field must name a directory (they are all inputs)."""
   if path.rsplit(".", 1)[-1].endswith("_dir") and isinstance(value, str) and value:
-    if not Path(value).is_dir():
-      return "no such directory"
+    try:
+      if not Path(value).is_dir():
+        return "no such directory"
+    except OSError as e:  # e.g. a path component longer than the file system allows
+      return f"no such directory ({e.strerror})"
   return None
 
 
+class TypedConfig:
+  """The typed config of a config flag, built once when the flags are parsed (`value`)."""
+
+  def __init__(self, from_config: Callable):
+    self._from_config, self._value = from_config, None
+
+  def build(self, name: str) -> None:
+    """Builds it from `--name`; a bad field exits via `fail`, naming it."""
+    try:
+      self._value = self._from_config(FLAGS[name].value)
+    except ConfigFieldError as e:
+      fail(f"--{name}.{e.field}={e.value}: {e.problem}")
+    except ValueError as e:
+      fail(f"--{name}: {e}")
+
+  @property
+  def value(self):
+    if self._value is None:
+      raise RuntimeError("TypedConfig.value read before the flags were parsed (cli.run)")
+    return self._value
+
+
+_TYPED: dict[str, TypedConfig] = {}
+
+
+def typed_config(name: str, from_config: Callable) -> TypedConfig:
+  """Registers `from_config(<value of config flag --name>)`, run when `run` parses the
+  flags (after the checks of `check_config`); returns the holder of its result."""
+  _TYPED[name] = TypedConfig(from_config)
+  return _TYPED[name]
+
+
 def check_config(name: str) -> str | None:
-  """The first problem of config flag `--name` (load failure, a field's type or range, a
-  `*_dir` field that is not a directory) as a message naming the field; None if none."""
+  """The first problem of config flag `--name` (load failure, a field's type or a value
+  that is not finite, a `*_dir` field that is not a directory) as a message naming the
+  field; None if none. Ranges are the typed config's (`typed_config`)."""
   flag = FLAGS[name]
   filename = config_flags.get_config_filename(flag)
   try:
@@ -280,19 +275,29 @@ def writable(path: str | os.PathLike) -> bool:
   return False
 
 
+def _path_validator(name: str, check: Callable[[str], bool], message: str) -> None:
+  """Validator: flag `name` is unset or `check(value)`; an OSError of the check (a name
+  too long, ...) fails the flag with `message` and the OS's reason."""
+
+  def verify(value):
+    try:
+      return value is None or check(value)
+    except OSError as e:
+      raise flags.ValidationError(f"{message} ({e.strerror})") from e
+  flags.register_validator(name, verify, message)
+
+
 def input_dirs(*names: str) -> None:
   """Validators: each flag of `names`, when set, names an existing directory."""
   for name in names:
-    flags.register_validator(name, lambda v: v is None or Path(v).is_dir(),
-                             "no such directory")
+    _path_validator(name, lambda v: Path(v).is_dir(), "no such directory")
 
 
 def output_dirs(*names: str) -> None:
   """Validators: each flag of `names`, when set, is a directory that can be written or
   created (`writable`)."""
   for name in names:
-    flags.register_validator(name, lambda v: v is None or writable(v),
-                             "cannot create or write a directory there")
+    _path_validator(name, writable, "cannot create or write a directory there")
 
 
 def presets(name: str, get_config: Callable) -> None:

@@ -4,8 +4,8 @@ XLA:CPU allocates each execution's large buffers anew. With glibc's defaults eve
 above 32 MB is a fresh `mmap` that is page-faulted in on first touch and unmapped when
 freed, so each training step pays for ~0.9 M page faults (reference-size U-Net, batch 256:
 ~2.4 s of system time per step on 2 cores; BUILD_NOTES.md, "Host allocator"). An allocator
-that keeps freed pages mapped removes that. The entry points (`cli.run`) re-execute
-themselves once, before any work, with
+that keeps freed pages mapped removes that. The training entry points
+(`cli.run(main, allocator=True)`) re-execute themselves once, before any work, with
 - jemalloc preloaded without page decay (`MALLOC_CONF=dirty_decay_ms:-1,muzzy_decay_ms:-1`)
   where `libjemalloc.so.2` is installed (Debian / Ubuntu: `apt-get install libjemalloc2`),
   or the path in `CVMDX_JEMALLOC`;
@@ -13,8 +13,8 @@ themselves once, before any work, with
   (`GLIBC_TUNABLES`).
 Only on Linux. `CVMDX_ALLOCATOR=system` keeps the process as started (the tests set it).
 The price: the process keeps its peak memory until it exits (the peak itself is unchanged),
-and the re-execution imports the script's modules twice (~1.6 s of start-up, measured on
-`evaluate.py --helpshort`: 4.4 s against 2.8 s with `CVMDX_ALLOCATOR=system`).
+and the re-execution imports the script's modules twice (~1.6 s of start-up), which is why
+only the trainers pay it, and not for `--help` (`HELP_FLAGS`).
 """
 
 import os
@@ -30,6 +30,7 @@ JEMALLOC_PATHS = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
 JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1"
 GLIBC_TUNABLES = ("glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=68719476736:"
                   "glibc.malloc.arena_max=1")
+HELP_FLAGS = ("?", "help", "helpshort", "helpfull", "helpxml")  # absl's, after - or --
 
 
 def _joined(environ: Mapping[str, str], name: str, value: str, sep: str) -> str:
@@ -74,7 +75,11 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
 
 def reexec_with_allocator() -> None:
   """Re-executes this process (same interpreter and arguments) with
-  `allocator_environment(os.environ)`, when that is not None; else returns."""
+  `allocator_environment(os.environ)`, when that is not None and no help flag was given
+  (absl prints the usage and exits: nothing to speed up); else returns."""
+  if any(arg.startswith("-") and arg.lstrip("-").split("=", 1)[0] in HELP_FLAGS
+         for arg in sys.argv[1:]):
+    return
   env = allocator_environment(os.environ)
   if env is not None:
     sys.stdout.flush()

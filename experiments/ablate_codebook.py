@@ -1,6 +1,6 @@
 """The codebook-size ablation of the paper's Table I on a chosen dataset.
 
-  PYTHONPATH=. python experiments/ablate_codebook.py --data_dir=runs/demo/data \\
+  .venv/bin/python experiments/ablate_codebook.py --data_dir=runs/demo/data \\
       --workdir=runs/ablation --codebook_sizes=30,60,90,128,256 \\
       --tokenizer_preset=demo --diffusion_preset=demo [--quantizers=cvq,vq]
 
@@ -15,8 +15,10 @@ from absl import app, flags
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.evaluation import report
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -44,10 +46,10 @@ def run_one(root: Path, data_dir: str, quantizer: str, q: int) -> dict:
   run = root / f"{quantizer}_q{q}"
   tok = tokenizer_config.get_config(_TOK.value)
   tok.data_dir, tok.quantizer.codebook_size, tok.quantizer.kind = data_dir, q, quantizer
-  tokenizer_train.train_and_evaluate(tok, run / "tokenizer")
+  tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok), run / "tokenizer")
   diff = diffusion_config.get_config(_DIFF.value)
   diff.data_dir, diff.tokenizer_dir = data_dir, str(run / "tokenizer")
-  diffusion_train.train_and_evaluate(diff, run / "diffusion")
+  diffusion_train.train(DiffusionConfig.from_config(diff), run / "diffusion")
   return report.run(tokenizer_dir=run / "tokenizer", diffusion_dir=run / "diffusion",
                     data_dir=data_dir, workdir=run / "eval", max_scenarios=_MAX.value,
                     ddpm_scenarios=0, figures_per_class=0)
@@ -78,4 +80,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """End-to-end speed of cVMDx on this machine, side by side in one run.
 
-  PYTHONPATH=. .venv/bin/python experiments/benchmark.py [--reference_batch=256]
+  .venv/bin/python experiments/benchmark.py [--reference_batch=256]
 
 Prints, for the CPU default U-Net (configs/diffusion.py:demo) and the reference-size
 U-Net (configs/diffusion.py:paper): the full jitted predict path (9 samples, DDIM 10,
@@ -12,7 +12,7 @@ training steps/s at batch 256. Weights are random: speed does not depend on them
 
 Against the official code (../shared/reference_bench, run its official_timing.py first):
 
-  PYTHONPATH=. .venv/bin/python experiments/benchmark.py \
+  .venv/bin/python experiments/benchmark.py \
       --reference_json=/tmp/ours.json --official_json=/tmp/official.json
 
 times only the official-size U-Net (configs/diffusion.py:reference with Q = 256 tokens:
@@ -34,7 +34,11 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import atomic, cli, diffusion, ego_motion, inference, runs
+from cvmdx_jax import cli, diffusion, ego_motion
+from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.targets import DenoiserConfig
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import diffusion as diffusion_train
 
@@ -58,7 +62,7 @@ NUM_TOKENS = 60
 REFERENCE_TOKENS = 256  # the official model: num_classes = 257 = Q + the null token
 # (warm-up calls, timed calls) of the reference timings: b1, big, train
 REFERENCE_REPEATS = {"b1": (1, 7), "big": (1, 3), "train": (2, 5)}
-_predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
+_predict_batch = jax.jit(sampling_lib.predict_batch, static_argnames=sampling_lib.STATIC_ARGNAMES)
 
 
 def _time(fn, repeats, warmup=1):
@@ -83,21 +87,23 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_timing(graphdef, params, b: int, config: inference.SamplingConfig, repeats: int,
-                   num_tokens: int = NUM_TOKENS, warmup: int = 1):
+def predict_timing(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
+                   num_tokens: int = NUM_TOKENS, warmup: int = 1,
+                   denoiser_config: DenoiserConfig = DenoiserConfig()):
   """Median seconds of one jitted `predict_batch` call for `b` scenarios."""
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(
       graphdef, params, jnp.arange(b) % num_tokens, jnp.full(b, 5.0), jnp.full(b, 30.0),
       jnp.zeros(b), keys, jnp.zeros((b, ego_motion.NUM_FEATURES)), schedule=schedule,
-      null_token=num_tokens, config=config)
+      null_token=num_tokens, config=config, denoiser_config=denoiser_config)
   return _time(call, repeats, warmup)
 
 
-def train_timing(config, cfg, batch: int, repeats: int, warmup: int = 1):
-  """Median seconds of one jitted training step (AdamW, EMA) at `batch`."""
-  _, init_fn, step_fn = diffusion_train.init_and_step(config, cfg, 10_000)
+def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int = 1):
+  """Median seconds of one jitted training step (AdamW, EMA) at `batch` (`config.model`
+  sized for its tokens)."""
+  _, init_fn, step_fn = diffusion_train.init_and_step(config, 10_000)
   state = init_fn(jax.random.key(0))
   step = jax.jit(step_fn, donate_argnums=0)
   data = {"x0": jax.random.uniform(jax.random.key(1), (batch, 125, 2), minval=-1, maxval=1),
@@ -111,7 +117,7 @@ def train_timing(config, cfg, batch: int, repeats: int, warmup: int = 1):
   return _time(one, repeats, warmup)
 
 
-def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig:
+def default_sampling(base: sampling_lib.SamplingConfig) -> sampling_lib.SamplingConfig:
   """`base` with the default sampler and steps (--sampler, --steps, else
   configs/diffusion.py without a preset)."""
   default = diffusion_config.get_config().sampling
@@ -119,7 +125,8 @@ def default_sampling(base: inference.SamplingConfig) -> inference.SamplingConfig
                              steps=_STEPS.value or default.steps)
 
 
-def reference_timings(config, num_tokens: int, sampling: inference.SamplingConfig, *,
+def reference_timings(config: DiffusionConfig, num_tokens: int,
+                      sampling: sampling_lib.SamplingConfig, *,
                       big: int = 32, train_batch: int = 256,
                       repeats=REFERENCE_REPEATS) -> dict:
   """Timings in the ../shared/reference_bench schema, seconds (medians).
@@ -128,15 +135,15 @@ def reference_timings(config, num_tokens: int, sampling: inference.SamplingConfi
     {"params", "sampler", "steps", "b1": {"total"}, "big": {"total", "b"},
      "train": {"step", "batch"}}; "total" is one predict_batch call end to end.
   """
-  cfg = runs.unet_config(config, num_tokens)
-  graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
+  config = config.with_tokens(num_tokens)
+  graphdef, params = unet1d.init_unet(config.model, jax.random.key(0))
   timed = lambda b, key: predict_timing(graphdef, params, b, sampling, repeats[key][1],
-                                        num_tokens, repeats[key][0])
+                                        num_tokens, repeats[key][0], config.diffusion)
   train_warmup, train_repeats = repeats["train"]
   return {"params": unet1d.count_params(params), "sampler": sampling.sampler,
           "steps": sampling.steps, "b1": {"total": timed(1, "b1")},
           "big": {"total": timed(big, "big"), "b": big},
-          "train": {"step": train_timing(config, cfg, train_batch, train_repeats, train_warmup),
+          "train": {"step": train_timing(config, train_batch, train_repeats, train_warmup),
                     "batch": train_batch}}
 
 
@@ -176,8 +183,8 @@ def ratio_table(official: dict, ours: dict) -> str:
 def reference_main():
   """--reference_json / --official_json: the official-size timings and the ratio table."""
   official = read_timings(_OFFICIAL_JSON.value) if _OFFICIAL_JSON.value else None
-  config = diffusion_config.get_config("reference")
-  sampling = default_sampling(runs.sampling_config(config))
+  config = DiffusionConfig.from_config(diffusion_config.get_config("reference"))
+  sampling = default_sampling(config.sampling)
   ours = reference_timings(config, REFERENCE_TOKENS, sampling, big=_BIG.value)
   print(f"reference size: {ours['params'] / 1e6:.2f} M parameters, {sampling.sampler} "
         f"{sampling.steps} steps: B=1 {ours['b1']['total']:.3f} s, B={ours['big']['b']} "
@@ -196,9 +203,10 @@ def main(argv):
     return
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
-    config = diffusion_config.get_config(preset)
-    cfg = runs.unet_config(config, NUM_TOKENS)
-    ddim = inference.SamplingConfig(conditioning=runs.conditioning(config))
+    config = DiffusionConfig.from_config(diffusion_config.get_config(preset)).with_tokens(
+        NUM_TOKENS)
+    cfg, targets = config.model, config.diffusion
+    ddim = sampling_lib.SamplingConfig()
     fast = default_sampling(ddim)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
     gflop = forward_flops(graphdef, params, cfg.cond_dim) / 1e9
@@ -207,22 +215,23 @@ def main(argv):
           f"{gflop:.3f} GFLOP per sample forward, {per_scenario:.1f} GFLOP per scenario "
           f"(9 samples x 10 steps x 2 for CFG)")
     for b in (1, big):
-      sec = predict_timing(graphdef, params, b, ddim, _REPEATS.value)
+      sec = predict_timing(graphdef, params, b, ddim, _REPEATS.value,
+                           denoiser_config=targets)
       print(f"predict  B={b:4d}: {sec:8.3f} s/call  {1000 * sec / b:8.1f} ms/scenario  "
             f"{b / sec:7.1f} scenarios/s  {per_scenario * b / sec:6.1f} GFLOP/s")
     for b in (1, big):
-      sec = predict_timing(graphdef, params, b, fast, _REPEATS.value)
+      sec = predict_timing(graphdef, params, b, fast, _REPEATS.value,
+                           denoiser_config=targets)
       print(f"predict  B={b:4d} {fast.sampler}({fast.steps}): {sec:8.3f} s/call  "
             f"{1000 * sec / b:8.1f} ms/scenario  {b / sec:7.1f} scenarios/s")
     ddpm = dataclasses.replace(ddim, sampler="ddpm")
-    t_ddim = predict_timing(graphdef, params, 1, ddim, 1)
-    t_fast = predict_timing(graphdef, params, 1, fast, 1)
-    t_ddpm = predict_timing(graphdef, params, 1, ddpm, 1)
+    t_ddim, t_fast, t_ddpm = (predict_timing(graphdef, params, 1, s, 1, denoiser_config=targets)
+                              for s in (ddim, fast, ddpm))
     print(f"DDPM(1000) {t_ddpm:.2f} s vs DDIM(10) {t_ddim:.3f} s per scenario (9 samples): "
           f"{t_ddpm / t_ddim:.1f}x")
     print(f"DDPM(1000) {t_ddpm:.2f} s vs default {fast.sampler}({fast.steps}) {t_fast:.3f} s "
           f"per scenario (9 samples): {t_ddpm / t_fast:.1f}x")
-    sec = train_timing(config, cfg, _TRAIN_BATCH.value, _REPEATS.value)
+    sec = train_timing(config, _TRAIN_BATCH.value, _REPEATS.value)
     print(f"train    B={_TRAIN_BATCH.value}: {sec:.3f} s/step  {1 / sec:.2f} steps/s")
 
 
@@ -230,4 +239,4 @@ for _name in ("demo_batch", "reference_batch", "train_batch", "repeats"):
   flags.register_validator(_name, lambda v: v >= 1, "must be >= 1")
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -6,7 +6,7 @@ Sections (`--sections`, in this order):
     default (reference-size) U-Net; the ideal ratio is 100x.
   hypotheses: batched JAX `fit_hypotheses` (jitted, warmed up) vs a plain
     scikit-learn per-scenario loop (`sklearn_bic`) on sets of sampled
-    trajectories with 1-3 known modes (`multimodal.synthetic`): wall times,
+    trajectories with 1-3 known modes (`tests/multimodal/synthetic.py`): wall times,
     speed-up, share of scenarios where both pick the same C. (The matched-start
     scikit-learn oracle that checks the JAX path number for number is a test:
     tests/multimodal/oracle.py.)
@@ -14,7 +14,7 @@ Sections (`--sections`, in this order):
     'physical' and 'minmax' scaling and a few covariance floors.
 
 Run:
-  PYTHONPATH=. .venv/bin/python experiments/benchmark_sampling.py
+  .venv/bin/python experiments/benchmark_sampling.py
 """
 
 import time
@@ -35,7 +35,7 @@ from cvmdx_jax import diffusion
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import synthetic
+from tests.multimodal import synthetic
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 

@@ -1,6 +1,6 @@
 """Codebook health: entries in use and perplexity of CVQ vs VQ for several codebook sizes.
 
-  PYTHONPATH=. .venv/bin/python experiments/codebook_health.py \
+  .venv/bin/python experiments/codebook_health.py \
       --config=configs/tokenizer.py:demo --workdir=runs/codebook_health
 
 Trains one tokeniser per (Q, quantizer) with the same config, data, seed and number of
@@ -20,10 +20,14 @@ from pathlib import Path
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import atomic, cli, metrics, tokens
+from cvmdx_jax import cli
+from cvmdx_jax.runs import tokens
+from cvmdx_jax.storage import atomic
+from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
 from cvmdx_jax.data import dataset
 from cvmdx_jax.models import quantizer as quantizer_lib
+from cvmdx_jax.runs.config import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
@@ -34,6 +38,7 @@ _SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"],
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
 cli.int_list("codebook_sizes", 1)
+cli.typed_config("config", TokenizerRunConfig.from_config)  # checked; rows vary Q and kind
 
 
 def _errors(pred, test) -> str:
@@ -70,7 +75,7 @@ def main(argv):
       run = config.copy_and_resolve_references()
       run.quantizer.codebook_size, run.quantizer.kind = q, kind
       run_dir = workdir / f"{kind}_q{q}"
-      tokenizer.train_and_evaluate(run, run_dir)
+      tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(run), run_dir)
       rows.append(_row(run_dir, q, kind, splits))
       logging.info("%s", rows[-1])
   table = "\n".join(rows) + "\n"
@@ -79,4 +84,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """Evaluates trained cVMDx runs like the paper and writes metrics.json, tables, figures.
 
-  PYTHONPATH=. python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
+  .venv/bin/python experiments/evaluate.py --tokenizer_dir=runs/demo/tokenizer \\
       --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
       --workdir=runs/demo/eval
 `--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.
@@ -10,7 +10,8 @@
 
 from absl import app, flags
 
-from cvmdx_jax import cli, inference
+from cvmdx_jax import cli
+from cvmdx_jax.inference import sampling
 from cvmdx_jax.evaluation import report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
@@ -26,7 +27,7 @@ _MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 =
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 300,
                              "Scenarios for the single-DDPM-sample baseline (0 = skip).",
                              lower_bound=0)
-_SAMPLER = flags.DEFINE_enum("sampler", None, list(inference.SAMPLERS),
+_SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
                               "Sampler instead of the diffusion run's (e.g. ddim with "
                               "--steps=10: the paper's DDIM-10 on a model whose default is "
                               "dpmpp2m).")

@@ -1,7 +1,7 @@
 """Imports an official cVMDx checkpoint (PyTorch state dict, no torch needed) as a
 diffusion run directory that `load_denoiser` and `Predictor.load` accept.
 
-  PYTHONPATH=. python experiments/import_official.py --checkpoint=ema_0.9999_080000.pt \\
+  .venv/bin/python experiments/import_official.py --checkpoint=ema_0.9999_080000.pt \\
       --workdir=runs/official_diffusion [--tokenizer_dir=runs/tokenizer]
 
 Q is read from the label embedding (Q + 1 rows, the last the null label). The run's
@@ -9,11 +9,14 @@ config is `configs/diffusion.py:reference` with the checkpoint's U-Net sizes, co
 scale (4 m/s^2, 0.7 rad/s) and `sampling.mode="official"` (override at inference
 with `Predictor.load(..., sampling=...)`). `--tokenizer_dir` pairs the run with a
 tokeniser of ours (its codebook size must be Q), so that `Predictor.load` accepts the
-pair; without it the run loads with `load_denoiser` only. `--workdir` must not exist;
-it appears complete or not at all.
+pair; without it the run loads with `load_denoiser` only. The checkpoint is checked
+whole (shapes against the architecture it implies, finite weights, `--num_heads`
+dividing the attention channels) before anything is written. `--workdir` must be new
+or empty; it is held (`locking.hold`) while written, so a second import into it is
+refused, and it gets config.json last: a run with config.json is complete.
 """
 
-import hashlib
+import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
@@ -23,8 +26,11 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import checkpointing, cli, normalization, runs
+from cvmdx_jax import cli, targets
 from cvmdx_jax.models import official_import
+from cvmdx_jax.runs import fingerprints, layout, loaders
+from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.storage import checkpointing, checksums, locking
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
@@ -37,56 +43,74 @@ _TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
 flags.mark_flags_as_required(["checkpoint", "workdir"])
 cli.input_dirs("tokenizer_dir")
 cli.output_dirs("workdir")
+_TMP_PREFIX = ".import."  # the run is written into <workdir>/.import.*, then moved in
 
 
-def write_run(workdir: Path, config, cfg, params, fingerprint: dict) -> None:
-  """Writes a diffusion run directory in the `cvmdx_jax.runs` format: config.json,
-  model.json and checkpoints/1 holding {params, ema_params} (both the imported
-  weights) and step 0, with metadata {"fingerprint": fingerprint}."""
-  runs.write_diffusion_dir(workdir, config, cfg)
+def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+  """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: config.json
+  and checkpoints/1 holding {params, ema_params} (both the imported weights) and step 0,
+  with metadata {"fingerprint": fingerprint}."""
+  layout.write_run_config(workdir, config)
   state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
            "step": jnp.zeros((), jnp.int32)}
-  with checkpointing.Checkpoints(workdir / runs.CHECKPOINTS, keep=1) as ckpts:
+  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=1) as ckpts:
     ckpts.save(1, state, {"fingerprint": fingerprint})
+
+
+def _write_once(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+  """`write_run` into a new or empty `workdir`, held, via a temporary directory inside
+  it; on failure nothing but the lock file is left. A `.import.*` directory left by an
+  import that was killed is removed first (the lock says no import is running)."""
+  with locking.hold(workdir):
+    for stale in workdir.glob(f"{_TMP_PREFIX}*"):
+      shutil.rmtree(stale)
+    found = sorted(p.name for p in workdir.iterdir() if not p.name.startswith(locking.LOCK_NAME))
+    if found:
+      raise ValueError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
+    tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=workdir))
+    moved = []
+    try:
+      write_run(tmp, config, params, fingerprint)
+      for entry in sorted(tmp.iterdir(), key=lambda p: p.name == layout.CONFIG_JSON):
+        entry.rename(workdir / entry.name)  # config.json last
+        moved.append(workdir / entry.name)
+    except BaseException:
+      for path in moved:
+        if path.is_dir():
+          shutil.rmtree(path)
+        path.unlink(missing_ok=True)
+      raise
+    finally:
+      shutil.rmtree(tmp)
 
 
 def main(argv):
   del argv
   checkpoint, workdir = Path(_CHECKPOINT.value), Path(_WORKDIR.value)
-  if workdir.exists():
-    raise ValueError(f"--workdir={workdir} exists; give a new directory")
   if not checkpoint.is_file():
     raise FileNotFoundError(f"--checkpoint={checkpoint}: no such file")
-  cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
-                                              num_heads=_NUM_HEADS.value)
+  try:
+    cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
+                                                num_heads=_NUM_HEADS.value)
+  except official_import.NumHeadsError as e:
+    raise ValueError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
   if _TOKENIZER_DIR.value:
-    bundle = runs.load_tokenizer(_TOKENIZER_DIR.value)
+    bundle = loaders.load_tokenizer(_TOKENIZER_DIR.value)
     if bundle.config.quantizer.codebook_size != cfg.num_tokens:
       raise ValueError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
                        f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
                        f"{cfg.num_tokens}")
-    tokens_meta = {"checkpoint": {"fingerprint": bundle.fingerprint.to_dict(),
-                                  **bundle.checkpoint.to_dict()}}  # step, params_sha256
+    tokens_meta = {"checkpoint": bundle.checkpoint.to_dict()}  # fingerprint, step, params_id
     config.tokenizer_dir = _TOKENIZER_DIR.value
-  for field in ("base_channels", "num_res_blocks", "emb_mult", "num_heads", "groups",
-                "dropout"):
-    config.model[field] = getattr(cfg, field)
-  config.model.channel_mult = cfg.channel_mult
-  config.model.attention_levels = cfg.attention_levels
-  config.diffusion.control_scale = normalization.PAPER_SCALE  # the official (4, 0.7)
+  config.diffusion.control_scale = targets.PAPER_SCALE  # the official (4, 0.7)
   config.sampling.mode = "official"
-  digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:16]
-  fingerprint = runs.diffusion_fingerprint(config, cfg, f"official:{digest}", tokens_meta)
-  workdir.parent.mkdir(parents=True, exist_ok=True)
-  tmp = Path(tempfile.mkdtemp(prefix=f".{workdir.name}.", dir=workdir.parent))
-  try:
-    write_run(tmp / "run", config, cfg, params, fingerprint)
-    (tmp / "run").rename(workdir)
-  finally:
-    shutil.rmtree(tmp)
+  config = dataclasses.replace(DiffusionConfig.from_config(config), model=cfg)
+  digest = checksums.file_sha256(checkpoint)[:16]
+  fingerprint = fingerprints.diffusion(config, f"official:{digest}", tokens_meta)
+  _write_once(workdir, config, params, fingerprint)
   print(f"imported {checkpoint} (Q = {cfg.num_tokens}, "
         f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}")
 

@@ -1,6 +1,6 @@
 """Builds the dataset cache and prints / saves its summary.
 
-  PYTHONPATH=. .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py \
+  .venv/bin/python experiments/make_dataset.py --config=configs/dataset.py \
       --data_dir=data/sumo                      # presets: configs/dataset.py:small, :tiny
   ... --config.source=highd --config.highd_dir=/path/to/highD/data --data_dir=data/highd
   ... --config.source=cvmd_mat --config.mat_dir=/path/to/mat --data_dir=data/mat
@@ -17,13 +17,15 @@ from pathlib import Path
 from absl import app, flags
 from ml_collections import config_flags
 
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, summary
 
 _CONFIG = config_flags.DEFINE_config_file("config", "configs/dataset.py", "Dataset config.",
                                           lock_config=True)
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Output directory.")
 cli.output_dirs("data_dir")
+cli.typed_config("config", dataset.checked_config)
 
 
 def main(argv):

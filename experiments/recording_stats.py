@@ -1,6 +1,6 @@
 """Per-recording statistics of a SUMO dataset (road, traffic, speeds, lane changes).
 
-  PYTHONPATH=. .venv/bin/python experiments/recording_stats.py --data_dir=data/sumo
+  .venv/bin/python experiments/recording_stats.py --data_dir=data/sumo
 
 Reads <data_dir>/recordings (XX_*.csv and plans.json, written by make_dataset.py), prints a
 markdown table with one row per recording and writes <data_dir>/recording_stats.json.
@@ -10,7 +10,8 @@ from pathlib import Path
 
 from absl import app, flags
 
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import sumo_stats
 
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Dataset directory (make_dataset.py).")

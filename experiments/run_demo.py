@@ -1,6 +1,6 @@
 """The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion (+ learned baseline) -> report.
 
-  make demo        (= PYTHONPATH=. .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
+  make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
 Writes runs/demo/{data, tokenizer, diffusion, baseline}/ and two reports in the same
 schema, each with the rows of the multiple-choice MLP baseline trained on the same train
@@ -26,6 +26,7 @@ from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.train import baseline as baseline_train
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
@@ -65,17 +66,17 @@ def main(argv):
   _stage(f"2/5 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
   tok_cfg = tokenizer_config.get_config(_TOKENIZER.value)
   tok_cfg.data_dir = str(data_dir)
-  tokenizer_train.train_and_evaluate(tok_cfg, tok_dir)
+  tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
   _stage(f"3/5 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  diffusion_train.train_and_evaluate(diff_cfg, diff_dir)
+  diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
 
   _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
   base_cfg = baseline_config.get_config(_BASELINE.value)
   base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  baseline_train.train_and_evaluate(base_cfg, base_dir)
+  baseline_train.train(BaselineConfig.from_config(base_cfg), base_dir)
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
@@ -92,4 +93,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,7 +1,7 @@
 """Network evaluations against accuracy: DDIM and DPM-Solver++(2M) at several step
 counts on one trained run's validation split; picks the default sampler.
 
-  PYTHONPATH=. .venv/bin/python experiments/sampler_pareto.py \\
+  .venv/bin/python experiments/sampler_pareto.py \\
       --tokenizer_dir=runs/demo/tokenizer --diffusion_dir=runs/demo/diffusion \\
       --data_dir=runs/demo/data --out_dir=runs/demo/pareto
 
@@ -22,10 +22,11 @@ from absl import flags
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, cli
+from cvmdx_jax import cli
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
 from cvmdx_jax.evaluation import scoring
-from cvmdx_jax.predict import Predictor
+from cvmdx_jax.inference.predictor import Predictor
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")

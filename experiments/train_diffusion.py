@@ -1,6 +1,6 @@
 """Trains the motion diffusion model on (normalised controls, token q).
 
-  PYTHONPATH=. python experiments/train_diffusion.py --config=configs/diffusion.py:demo \\
+  .venv/bin/python experiments/train_diffusion.py --config=configs/diffusion.py:demo \\
       --workdir=runs/demo/diffusion --config.data_dir=... --config.tokenizer_dir=...
 Rerunning the same command resumes from the last complete checkpoint.
 """
@@ -10,6 +10,7 @@ import jax
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
+from cvmdx_jax.runs.config import DiffusionConfig
 from cvmdx_jax.train import diffusion
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
@@ -17,6 +18,7 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
+_RUN = cli.typed_config("config", DiffusionConfig.from_config)
 
 
 def main(argv):
@@ -24,8 +26,8 @@ def main(argv):
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   sharding.initialize_distributed()
   logging.info("JAX devices: %s", jax.devices())
-  diffusion.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+  diffusion.train(_RUN.value, _WORKDIR.value)
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

@@ -1,6 +1,6 @@
 """Trains the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head) and writes its tokens.
 
-  PYTHONPATH=. .venv/bin/python experiments/train_tokenizer.py \
+  .venv/bin/python experiments/train_tokenizer.py \
       --config=configs/tokenizer.py:demo --workdir=runs/tokenizer
 Rerunning the same command resumes from the latest checkpoint in --workdir. The library
 does the work (cvmdx_jax.train.tokenizer); this file only parses flags.
@@ -12,6 +12,7 @@ from ml_collections import config_flags
 import jax
 
 from cvmdx_jax import cli, sharding
+from cvmdx_jax.runs.config import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
@@ -19,6 +20,7 @@ _CONFIG = config_flags.DEFINE_config_file(
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics, tokens).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
+_RUN = cli.typed_config("config", TokenizerRunConfig.from_config)
 
 
 def main(argv):
@@ -26,9 +28,9 @@ def main(argv):
     raise app.UsageError(f"Too many command-line arguments: {argv[1:]}")
   sharding.initialize_distributed()
   logging.info("devices: %s", jax.devices())
-  tokenizer.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+  tokenizer.train_and_evaluate(_RUN.value, _WORKDIR.value)
   logging.info("tokens written to %s/tokens", _WORKDIR.value)
 
 
 if __name__ == "__main__":
-  cli.run(main)
+  cli.run(main, allocator=True)

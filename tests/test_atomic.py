@@ -1,10 +1,16 @@
-"""`cvmdx_jax.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
+"""`cvmdx_jax.storage.atomic`: all-or-nothing writes, umask-respecting modes, format round trips."""
 
+import contextlib
+import errno
 import json
 import os
 import stat
+from pathlib import Path
 
-import matplotlib
+import numpy as np
+import pandas as pd
+import pytest
+import scipy.io
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -13,7 +19,8 @@ import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
 import scipy.io  # noqa: E402
 
-from cvmdx_jax import atomic, tokens  # noqa: E402
+from cvmdx_jax.runs import tokens  # noqa: E402
+from cvmdx_jax.storage import atomic  # noqa: E402
 
 
 class _Boom:
@@ -23,24 +30,11 @@ class _Boom:
     raise RuntimeError("boom")
 
 
-def _figure():
-  fig, ax = plt.subplots(figsize=(2, 1))
-  ax.plot([0, 1], [1, 0])
-  return fig
-
-
-def _failing_figure():
-  fig = _figure()
-  fig.canvas.print_figure = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("boom"))
-  return fig
-
-
 FAILING_WRITERS = {
     "writing": lambda p: _write_then_fail(p),
     "npz": lambda p: atomic.write_npz(p, a=np.ones(1000), b=_Boom()),
     "mat": lambda p: atomic.write_mat(p, {"a": np.ones(1000), "b": _Boom()}),
     "jsonl": lambda p: atomic.write_jsonl(p, ({"i": i} if i < 3 else 1 / 0 for i in range(5))),
-    "png": lambda p: atomic.save_figure(p, _failing_figure()),
 }
 
 
@@ -59,7 +53,6 @@ def test_failing_writer_keeps_old_file_and_leaves_no_temporary(tmp_path, name):
     FAILING_WRITERS[name](target)
   assert target.read_bytes() == b"old content"
   assert sorted(p.name for p in tmp_path.iterdir()) == [target.name]
-  plt.close("all")
 
 
 @pytest.mark.parametrize("umask", [0o022, 0o027, 0o077, 0o002])
@@ -119,17 +112,50 @@ def test_npz_and_mat_round_trip(tmp_path):
   assert str(mat["s"][0]) == "kl"
 
 
-def test_png_and_csv(tmp_path):
-  fig = _figure()
-  atomic.save_figure(tmp_path / "f.png", fig, dpi=50)
-  plt.close(fig)
-  assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-  assert plt.imread(tmp_path / "f.png").shape[:2] == (50, 100)  # figsize (2, 1) in at 50 dpi
+def test_csv(tmp_path):
   frame = pd.DataFrame({"id": [1, 2], "x": [0.125, 3.0]})
   with atomic.writing(tmp_path / "t.csv", "w") as f:
     frame.to_csv(f, index=False, float_format="%.2f")
   assert (tmp_path / "t.csv").read_text() == "id,x\n1,0.12\n2,3.00\n"
-  assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png", "t.csv"]
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["t.csv"]
+
+
+class _FullDisk:
+  """A file whose writes fail like a full disk."""
+
+  def write(self, data):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+  def flush(self):
+    pass
+
+
+def test_write_all_is_all_or_nothing(tmp_path, monkeypatch):
+  names = ("metrics.json", "a.png", "b.png")
+  for name in names:
+    (tmp_path / name).write_bytes(b"old " + name.encode())
+  real = atomic.writing
+
+  @contextlib.contextmanager
+  def full_at_b(path, mode="wb"):
+    with real(path, mode) as f:
+      yield _FullDisk() if Path(path).name == "b.png" else f
+
+  files = {tmp_path / name: b"new " + name.encode() for name in names}
+  monkeypatch.setattr(atomic, "writing", full_at_b)
+  with pytest.raises(OSError, match="No space left"):
+    atomic.write_all(files)
+  assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == {
+      name: b"old " + name.encode() for name in names}  # no temporary either
+  monkeypatch.setattr(atomic, "writing", real)
+  renamed = []
+  replace = os.replace
+  monkeypatch.setattr(atomic.os, "replace", lambda a, b: (renamed.append(Path(b).name),
+                                                          replace(a, b)))
+  atomic.write_all(files)
+  assert renamed == ["b.png", "a.png", "metrics.json"]  # the first one last
+  assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == {
+      name: b"new " + name.encode() for name in names}
 
 
 def test_writing_rejects_other_modes(tmp_path):

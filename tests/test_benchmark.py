@@ -5,7 +5,9 @@ import json
 import pytest
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import atomic, inference
+from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.storage import atomic
 from experiments import benchmark
 
 OFFICIAL = {"params": 22_470_000, "b1": {"total": 1.6, "ddim": 1.5, "post": 0.1},
@@ -13,8 +15,8 @@ OFFICIAL = {"params": 22_470_000, "b1": {"total": 1.6, "ddim": 1.5, "post": 0.1}
 
 
 def test_reference_timings_schema_on_a_tiny_model(tmp_path):
-  config = diffusion_config.get_config("tiny")
-  sampling = inference.SamplingConfig(num_samples=3, sampler="dpmpp2m", steps=2)
+  config = DiffusionConfig.from_config(diffusion_config.get_config("tiny"))
+  sampling = sampling_lib.SamplingConfig(num_samples=3, sampler="dpmpp2m", steps=2)
   timings = benchmark.reference_timings(
       config, 4, sampling, big=3, train_batch=4,
       repeats={"b1": (1, 2), "big": (0, 1), "train": (1, 1)})

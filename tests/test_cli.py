@@ -8,9 +8,11 @@ user error (unwritable output directory, garbled JSON, locked workdir, missing d
 wrong type, NaN, missing config file, missing required flag, stray argument) once each.
 """
 
+import errno
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +20,8 @@ from pathlib import Path
 import pytest
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import cli, locking
+from cvmdx_jax import cli
+from cvmdx_jax.storage import locking
 
 REPO = Path(__file__).resolve().parents[1]
 # absl INFO lines (a script may log its devices before it fails): not error output
@@ -45,6 +48,7 @@ DIFF = "--config=configs/diffusion.py:tiny"
 DATA = "--config=configs/dataset.py:tiny"
 EVAL = "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty --data_dir={T}/empty"
 BASE = "--config=configs/baseline.py:tiny"
+LONG = "n" * 300  # a path component longer than any file system allows (ENAMETOOLONG)
 CASES = [
     ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("ablate_codebook", "--data_dir={T}/nosuch --workdir={NEW}", "--data_dir="),
@@ -74,6 +78,9 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{NEW}} --steps=0", "--steps=0"),
     ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
     ("evaluate", f"{EVAL} --workdir={{NEW}} --baseline_dir={{T}}/nosuch", "--baseline_dir="),
+    ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),
+    ("evaluate", f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
+     "--data_dir={T}/empty --workdir={NEW}", "File name too long"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
      "--tokenizer_dir="),
@@ -129,6 +136,8 @@ CASES = [
      "--config=configs/tokenizer.py:q=sixty"),
     ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
      "--config.data_dir="),
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/{LONG}",
+     "File name too long"),
     ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty "
      "--config.train.batch_size=0", "--config.train.batch_size=0"),
     ("train_tokenizer", "--workdir={NEW}", "--config"),  # required flag missing
@@ -200,3 +209,68 @@ def test_writable(tmp_path):
   assert cli.writable(tmp_path) and cli.writable(tmp_path / "a" / "b")
   assert not cli.writable(tmp_path / "file") and not cli.writable(tmp_path / "file" / "a")
   assert not (tmp_path / "a").exists()  # nothing made
+
+
+def _raiser(error):
+  def main(argv):
+    raise error
+  return main
+
+
+_ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/run/metrics.json")
+# what orbax re-raises from tensorstore when a checkpoint write finds the disk full
+_TENSORSTORE_FULL = ValueError(
+    'RESOURCE_EXHAUSTED: Failed writing: "/w/checkpoints/2.orbax-checkpoint-tmp/state/d/1a": '
+    "Failed to write 1792272 bytes to file 8: No space left on device [os_error_code='28']")
+
+
+@pytest.mark.parametrize("error, named", [
+    (_ENOSPC, "No space left on device: '/run/metrics.json'; free some space"),
+    (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), "/q"), "free some space"),
+    (OSError(errno.EROFS, os.strerror(errno.EROFS), "/ro/x"), "Read-only file system"),
+    (OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG), "/" + "n" * 300),
+     "File name too long"),
+    (_TENSORSTORE_FULL, "No space left on device [os_error_code='28']; free some space"),
+])
+def test_failures_of_the_machine_exit_2_with_one_line(monkeypatch, capsys, error, named):
+  assert _run(monkeypatch, _raiser(error)) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("evaluate: error: ") and err.count("\n") == 1 and named in err
+
+
+@pytest.mark.parametrize("error", [
+    ValueError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 8 bytes"),
+    RuntimeError("NOT_FOUND: no such key [os_error_code='2']"),  # ENOENT: not the machine
+    OSError(errno.EIO, os.strerror(errno.EIO)),
+])
+def test_other_resource_and_os_errors_keep_their_traceback(monkeypatch, error):
+  monkeypatch.setattr("sys.argv", ["prog"])
+  with pytest.raises(type(error)):
+    cli.run(_raiser(error))
+
+
+def test_keyboard_interrupt_in_process_exits_130(monkeypatch, capsys):
+  assert _run(monkeypatch, _raiser(KeyboardInterrupt())) == 130
+  assert capsys.readouterr().err == "evaluate: error: interrupted; rerun to resume\n"
+
+
+def test_sigint_gives_one_line_and_status_130(tmp_path):
+  script = tmp_path / "sleeper.py"
+  script.write_text(
+      "import sys, time\n"
+      "from cvmdx_jax import cli\n"
+      "def main(argv):\n"
+      "  print('ready', flush=True)\n"
+      "  time.sleep(60)\n"
+      "cli.run(main)\n")
+  env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+  proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+  try:
+    assert proc.stdout.readline() == "ready\n"
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=30)
+  finally:
+    proc.kill()
+  assert proc.returncode == 130, stderr
+  assert stderr == "sleeper: error: interrupted; rerun to resume\n"

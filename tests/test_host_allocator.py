@@ -51,25 +51,48 @@ def test_bad_choice_named():
 _SCRIPT = """
 import os
 from cvmdx_jax import cli
+print("start", os.environ.get("CVMDX_ALLOCATOR_APPLIED"), flush=True)  # once per process
 def main(argv):
   print(os.environ.get("CVMDX_ALLOCATOR_APPLIED"), os.environ.get("GLIBC_TUNABLES"), argv[1:])
-cli.run(main)
+cli.run(main, allocator={allocator})
 """
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the re-execution is Linux only")
-def test_entry_point_reexecutes_once_with_its_arguments(tmp_path):
-  script = tmp_path / "entry.py"
-  script.write_text(_SCRIPT)
-  env = {k: v for k, v in os.environ.items() if k not in (ha.OPT_OUT, ha.APPLIED)}
+def _entry_point(tmp_path, allocator: bool):
+  """Runs a `cli.run` entry point with extra environment and arguments -> CompletedProcess."""
+  script = tmp_path / f"entry_{allocator}.py"
+  script.write_text(_SCRIPT.format(allocator=allocator))
+  env = {k: v for k, v in os.environ.items()
+         if k not in (ha.OPT_OUT, ha.APPLIED, "GLIBC_TUNABLES")}
   env.update(PYTHONPATH=str(REPO), CVMDX_JEMALLOC="", JAX_PLATFORMS="cpu")
-  run = lambda extra: subprocess.run([sys.executable, str(script), "a", "b"], capture_output=True,
-                                     text=True, env={**env, **extra}, timeout=120)
-  proc = run({})  # jemalloc where installed, else the glibc tunables
+  return lambda *argv, **extra: subprocess.run(
+      [sys.executable, str(script), *argv], capture_output=True, text=True,
+      env={**env, **extra}, timeout=120)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the re-execution is Linux only")
+def test_training_entry_point_reexecutes_once_with_its_arguments(tmp_path):
+  run = _entry_point(tmp_path, allocator=True)
+  proc = run("a", "b")  # jemalloc where installed, else the glibc tunables
   assert proc.returncode == 0, proc.stderr
-  applied, _, argv = proc.stdout.strip().partition(" ")
-  assert applied == "1" and argv.endswith("['a', 'b']")
-  proc = run({ha.OPT_OUT: "system"})
-  assert proc.stdout.startswith("None None ['a', 'b']")
-  proc = run({ha.OPT_OUT: "bogus"})
+  lines = proc.stdout.splitlines()
+  assert lines[:2] == ["start None", "start 1"] and len(lines) == 3
+  assert lines[2].startswith("1 ") and lines[2].endswith("['a', 'b']")
+  proc = run("a", "b", **{ha.OPT_OUT: "system"})
+  assert proc.stdout.splitlines() == ["start None", "None None ['a', 'b']"]
+  proc = run(**{ha.OPT_OUT: "bogus"})
   assert proc.returncode == 2 and "error: CVMDX_ALLOCATOR='bogus'" in proc.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the re-execution is Linux only")
+@pytest.mark.parametrize("help_flag", ["--help", "--helpfull", "-?"])
+def test_help_of_a_training_entry_point_does_not_reexecute(tmp_path, help_flag):
+  proc = _entry_point(tmp_path, allocator=True)(help_flag)  # absl: usage, exit status 1
+  assert proc.stdout.splitlines()[0] == "start None"
+  assert "start 1" not in proc.stdout and "USAGE" in proc.stdout
+
+
+def test_other_entry_points_do_not_reexecute(tmp_path):
+  proc = _entry_point(tmp_path, allocator=False)("a", "b")
+  assert proc.returncode == 0, proc.stderr
+  assert proc.stdout.splitlines() == ["start None", "None None ['a', 'b']"]

@@ -7,13 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import diffusion, ego_motion, inference, normalization, vmm
+from cvmdx_jax import diffusion, ego_motion, targets, vmm
+from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 
 CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2)
-SAMPLING = inference.SamplingConfig(num_samples=9, steps=4)
-predict_batch = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
+SAMPLING = sampling.SamplingConfig(num_samples=9, steps=4)
+predict_batch = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
 
 
 @pytest.fixture(scope="module")
@@ -23,12 +24,12 @@ def model():
   return g, p
 
 
-def _predict(model, keys, b=3, config=SAMPLING):
+def _predict(model, keys, b=3, config=SAMPLING, denoiser=targets.DenoiserConfig()):
   g, p = model
   q = jnp.arange(b) % 4
   return predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
                        jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
-                       null_token=CFG.null_token, config=config)
+                       null_token=CFG.null_token, config=config, denoiser_config=denoiser)
 
 
 def test_shapes_and_consistency(model):
@@ -41,7 +42,7 @@ def test_shapes_and_consistency(model):
   np.testing.assert_allclose(out.mean, out.trajectories.mean(1), atol=1e-4)
   # trajectories are the VMM rollout of the controls, which stay in the normalised caps
   np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)
-  x0 = out.controls / jnp.asarray(normalization.PAPER_SCALE)
+  x0 = out.controls / jnp.asarray(targets.PAPER_SCALE)
   assert float(jnp.abs(x0).max()) <= 1.0 + 1e-5
 
 
@@ -64,25 +65,26 @@ def test_ddpm_path_and_bad_config(model):
   out = _predict(model, jax.random.split(jax.random.key(0), 2), b=2, config=cfg)
   assert out.trajectories.shape == (2, 3, 125, 2)
   with pytest.raises(ValueError, match="sampler"):
-    inference.SamplingConfig(sampler="euler")
+    sampling.SamplingConfig(sampler="euler")
 
 
 def test_control_scale_sets_the_physical_range(model):
   keys = jax.random.split(jax.random.key(0), 2)
-  narrow = dataclasses.replace(SAMPLING, control_scale=(2.0, 0.1))
+  narrow = targets.DenoiserConfig(control_scale=(2.0, 0.1))
   a = _predict(model, keys, b=2)
-  b = _predict(model, keys, b=2, config=narrow)
+  b = _predict(model, keys, b=2, denoiser=narrow)
   # same normalised samples, other physical units
   np.testing.assert_allclose(b.controls[..., 0] * 2.0, a.controls[..., 0], rtol=1e-4, atol=1e-6)
   np.testing.assert_allclose(b.controls[..., 1] * 7.0, a.controls[..., 1], rtol=1e-4, atol=1e-6)
   assert float(jnp.abs(b.controls[..., 1]).max()) <= 0.1 + 1e-6
 
 
-def _predict_ego(g, p, ego, keys, config):
+def _predict_ego(g, p, ego, keys, config, denoiser):
   b = ego.shape[0]
-  return inference.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
-                                 jnp.zeros(b), keys, ego, schedule=diffusion.cosine_schedule(),
-                                 null_token=CFG.null_token, config=config)
+  return sampling.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
+                                jnp.zeros(b), keys, ego, schedule=diffusion.cosine_schedule(),
+                                null_token=CFG.null_token, config=config,
+                                denoiser_config=denoiser)
 
 
 def test_ego_film_reaches_the_unconditional_branch():
@@ -93,26 +95,26 @@ def test_ego_film_reaches_the_unconditional_branch():
   keys = jax.random.split(jax.random.key(5), 2)
   # official form with w = 0 everywhere: the guided v is the unconditional branch alone
   uncond_only = dataclasses.replace(
-      SAMPLING, conditioning="ego_film",
-      guidance=diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
-  a = _predict_ego(g, p, ego, keys, uncond_only)
-  b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only)
+      SAMPLING, guidance=diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
+  film = targets.DenoiserConfig(conditioning="ego_film")
+  a = _predict_ego(g, p, ego, keys, uncond_only, film)
+  b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only, film)
   assert not np.allclose(a.controls, b.controls)
-  np.testing.assert_array_equal(a.controls, _predict_ego(g, p, ego, keys, uncond_only).controls)
+  np.testing.assert_array_equal(a.controls,
+                                _predict_ego(g, p, ego, keys, uncond_only, film).controls)
   with pytest.raises(ValueError, match="needs ego features"):
-    inference.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
-                            keys, schedule=diffusion.cosine_schedule(),
-                            null_token=CFG.null_token, config=uncond_only)
+    sampling.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
+                           keys, schedule=diffusion.cosine_schedule(),
+                           null_token=CFG.null_token, config=uncond_only, denoiser_config=film)
 
 
 def test_ego_residual_adds_the_extrapolated_controls(model):
   g, p = model
   ego = jax.random.normal(jax.random.key(6), (2, ego_motion.NUM_FEATURES))
   keys = jax.random.split(jax.random.key(7), 2)
-  token = _predict_ego(g, p, ego, keys, SAMPLING)
-  residual = dataclasses.replace(SAMPLING, conditioning="ego_residual",
-                                 residual_decay_s=(1.0, 0.5))
-  out = _predict_ego(g, p, ego, keys, residual)
+  token = _predict_ego(g, p, ego, keys, SAMPLING, targets.DenoiserConfig())
+  residual = targets.DenoiserConfig(conditioning="ego_residual", residual_decay_s=(1.0, 0.5))
+  out = _predict_ego(g, p, ego, keys, SAMPLING, residual)
   base = ego_motion.residual_controls(ego, (1.0, 0.5))[:, None]
   np.testing.assert_allclose(out.controls, token.controls + base, atol=1e-5)
   np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)

@@ -2,8 +2,11 @@
 byte-identical, corrupted files and checkpoints are refused naming the file, and a
 denoiser only pairs with the exact tokeniser checkpoint it was trained on."""
 
+import contextlib
+import errno
 import hashlib
 import json
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -15,11 +18,15 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import checkpointing, checksums, locking, runs as runs_lib, sharding, tokens
-from cvmdx_jax.checkpointing import CheckpointMismatchError
-from cvmdx_jax.checksums import CorruptRunError
+from cvmdx_jax import sharding
+from cvmdx_jax.runs import loaders as runs_lib
+from cvmdx_jax.runs import tokens
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.storage import atomic, checkpointing, checksums, locking
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.data import dataset
-from cvmdx_jax.predict import IncompatibleRunsError, Predictor
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
 from cvmdx_jax.train import diffusion, tokenizer
 
 
@@ -35,17 +42,25 @@ def _diff_config(root, tokenizer_dir="tokenizer"):
   return config
 
 
+def _train_tokenizer(config, workdir, **kwargs):
+  return tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(config), workdir, **kwargs)
+
+
+def _train_diffusion(config, workdir):
+  return diffusion.train(DiffusionConfig.from_config(config), workdir)
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
   """A tiny dataset, a tokeniser, a denoiser on it, and a second tokeniser (seed 1) of the
   same fingerprint and step but other weights."""
   root = tmp_path_factory.mktemp("integrity")
   dataset.build(dataset_config.get_config("tiny"), root / "data")
-  tokenizer.train_and_evaluate(_tok_config(root / "data"), root / "tokenizer")
-  diffusion.train_and_evaluate(_diff_config(root), root / "diffusion")
+  _train_tokenizer(_tok_config(root / "data"), root / "tokenizer")
+  _train_diffusion(_diff_config(root), root / "diffusion")
   other = _tok_config(root / "data")
   other.seed = 1
-  tokenizer.train_and_evaluate(other, root / "tokenizer_seed1")
+  _train_tokenizer(other, root / "tokenizer_seed1")
   return root
 
 
@@ -75,37 +90,37 @@ def test_refused_tokenizer_resume_leaves_the_directory_unchanged(runs):
   for config, differing in ((other_q, "codebook_size"), (other_size, "latent_dim"),
                             (other_batch, "batch_size")):
     with pytest.raises(CheckpointMismatchError, match=differing):
-      tokenizer.train_and_evaluate(config, workdir)
+      _train_tokenizer(config, workdir)
     assert _snapshot(workdir) == before, differing
   splits = {s: dataset.load_split(runs / "data", s) for s in ("train", "val")}
   splits["train"] = splits["train"].take(np.arange(len(splits["train"]) - 1))  # other data
   with pytest.raises(CheckpointMismatchError, match="dataset_id"):
-    tokenizer.train_and_evaluate(_tok_config(runs / "data"), workdir, splits=splits)
+    _train_tokenizer(_tok_config(runs / "data"), workdir, splits=splits)
   assert _snapshot(workdir) == before
 
 
 def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs):
   workdir = runs / "diffusion"
   before = _snapshot(workdir)
-  assert {"config.json", "model.json", "checksums.json", "metrics.jsonl"} <= set(before)
+  assert {"config.json", "checksums.json", "metrics.jsonl"} <= set(before)
   other_scale = _diff_config(runs)
   other_scale.diffusion.control_scale = (4.0, 0.7 * 2)
   other_size = _diff_config(runs)
   other_size.model.base_channels *= 2
   other_tokenizer = _diff_config(runs, "tokenizer_seed1")
   for config, differing in ((other_scale, "control_scale"), (other_size, "other model size"),
-                            (other_tokenizer, "params_sha256")):
+                            (other_tokenizer, "params_id")):
     with pytest.raises(CheckpointMismatchError, match=differing):
-      diffusion.train_and_evaluate(config, workdir)
+      _train_diffusion(config, workdir)
     assert _snapshot(workdir) == before, differing
   loaded = runs_lib.load_denoiser(workdir)  # still the run it was
-  assert tuple(loaded.config.diffusion.control_scale) == (4.0, 0.7)
+  assert loaded.config.diffusion.control_scale == (4.0, 0.7)
 
 
 def test_finished_run_rerun_with_its_config_still_verifies(runs, tmp_path):
   workdir = tmp_path / "diffusion"
   shutil.copytree(runs / "diffusion", workdir)
-  diffusion.train_and_evaluate(_diff_config(runs), workdir)
+  _train_diffusion(_diff_config(runs), workdir)
   with warnings.catch_warnings():
     warnings.simplefilter("error")  # every file and checkpoint carries its checksum
     Predictor.load(runs / "tokenizer", workdir)
@@ -113,7 +128,7 @@ def test_finished_run_rerun_with_its_config_still_verifies(runs, tmp_path):
 
 @pytest.mark.parametrize("run,name", [
     ("tokenizer", "tokenizer.json"), ("tokenizer", "tokens/gaussians.npz"),
-    ("diffusion", "config.json"), ("diffusion", "model.json")])
+    ("diffusion", "config.json")])
 def test_a_flipped_byte_in_a_run_file_is_refused_naming_it(runs, tmp_path, run, name):
   for offset in (5, -40):  # in the first field and near the end of the file
     shutil.rmtree(tmp_path / run, ignore_errors=True)
@@ -140,7 +155,7 @@ def test_a_flipped_byte_anywhere_in_a_checkpoint_is_refused_naming_the_file(runs
   load = runs_lib.load_tokenizer if run == "tokenizer" else runs_lib.load_denoiser
   step_dir = next((runs / run / "checkpoints").iterdir())
   files = sorted(p.relative_to(runs / run) for p in step_dir.rglob("*")
-                 if p.is_file() and p.name != "files.sha256.json")
+                 if p.is_file() and p.name != checksums.MANIFEST)
   assert any(f.parent.name == "d" for f in files)  # orbax's array data are among them
   for i, name in enumerate(files):
     shutil.rmtree(tmp_path / run, ignore_errors=True)
@@ -150,34 +165,34 @@ def test_a_flipped_byte_anywhere_in_a_checkpoint_is_refused_naming_the_file(runs
       load(tmp_path / run)
 
 
-def test_checkpoint_leaf_checksums_name_the_corrupted_leaf(tmp_path):
+def test_a_checkpoint_step_records_the_sha256_of_every_file_orbax_wrote(tmp_path):
   state = {"a": np.arange(6, dtype=np.float32), "b": {"c": np.ones((2, 3), np.int32)}}
   with checkpointing.Checkpoints(tmp_path) as ckpts:
     ckpts.save(1, state, {"run": 1})
-  meta_path = tmp_path / "1" / "_CHECKPOINT_METADATA"
-  meta = json.loads(meta_path.read_text())
-  # independent reference: hashlib over the saved leaves' bytes
-  assert meta["custom_metadata"]["sha256"] == {
-      "a": hashlib.sha256(state["a"].tobytes()).hexdigest(),
-      "b/c": hashlib.sha256(state["b"]["c"].tobytes()).hexdigest()}
+  step = tmp_path / "1"
+  manifest = json.loads((step / checksums.MANIFEST).read_text())
+  # independent reference: hashlib over each file's bytes
+  assert manifest == {p.relative_to(step).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                      for p in step.rglob("*") if p.is_file() and p.name != checksums.MANIFEST}
+  assert "_CHECKPOINT_METADATA" in manifest
   rep = sharding.replicated(sharding.data_mesh())
   abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), state)
   restored, saved = checkpointing.load_latest(tmp_path, abstract)
   assert saved == {"run": 1} and np.array_equal(restored["b"]["c"], state["b"]["c"])
-  # bytes orbax still decodes but that differ from the leaf's digest (file digests gone)
-  meta["custom_metadata"]["sha256"]["b/c"] = hashlib.sha256(b"other").hexdigest()
-  meta_path.write_text(json.dumps(meta))
-  (tmp_path / "1" / "files.sha256.json").unlink()
-  with pytest.warns(UserWarning, match="files.sha256.json"):
-    with pytest.raises(CheckpointMismatchError, match="corrupt.*'b/c'"):
-      checkpointing.load_latest(tmp_path, abstract)
+  (step / "extra").write_text("x")  # an added file is refused too
+  with pytest.raises(CheckpointMismatchError, match="corrupt.*'extra'"):
+    checkpointing.load_latest(tmp_path, abstract)
+  (step / "extra").unlink()
+  (step / checksums.MANIFEST).unlink()  # no manifest: refused, not trusted
+  with pytest.raises(CheckpointMismatchError, match="no checksums.json"):
+    checkpointing.load_latest(tmp_path, abstract)
 
 
 def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(runs):
   a = runs_lib.load_tokenizer(runs / "tokenizer")
   b = runs_lib.load_tokenizer(runs / "tokenizer_seed1")
   assert a.fingerprint == b.fingerprint and a.checkpoint.step == b.checkpoint.step
-  with pytest.raises(IncompatibleRunsError, match="params_sha256"):
+  with pytest.raises(IncompatibleRunsError, match="params_id"):
     Predictor.load(runs / "tokenizer_seed1", runs / "diffusion")
 
 
@@ -185,18 +200,16 @@ def test_denoiser_refuses_its_tokeniser_trained_further(runs, tmp_path):
   shutil.copytree(runs / "tokenizer", tmp_path / "tokenizer")
   config = _tok_config(runs / "data")
   config.train.num_epochs += 1
-  tokenizer.train_and_evaluate(config, tmp_path / "tokenizer")
+  _train_tokenizer(config, tmp_path / "tokenizer")
   with pytest.raises(IncompatibleRunsError, match="step"):
     Predictor.load(tmp_path / "tokenizer", runs / "diffusion")
 
 
-def test_runs_without_checksums_load_with_a_warning(runs, tmp_path):
-  for run in ("tokenizer", "diffusion"):
-    shutil.copytree(runs / run, tmp_path / run)
-    for manifest in (tmp_path / run).rglob(checksums.MANIFEST):
-      manifest.unlink()
-  with pytest.warns(UserWarning, match="no checksum recorded"):
-    Predictor.load(tmp_path / "tokenizer", tmp_path / "diffusion")
+def test_run_files_without_checksums_are_refused(runs, tmp_path):
+  shutil.copytree(runs / "tokenizer", tmp_path / "tokenizer")
+  (tmp_path / "tokenizer" / checksums.MANIFEST).unlink()
+  with pytest.raises(CorruptRunError, match="tokenizer.json: no checksum"):
+    Predictor.load(tmp_path / "tokenizer", runs / "diffusion")
 
 
 def test_checksummed_writes_leave_a_verifiable_manifest(tmp_path):
@@ -209,3 +222,29 @@ def test_checksummed_writes_leave_a_verifiable_manifest(tmp_path):
   path.write_text('{"a": 3}\n')
   with pytest.raises(CorruptRunError, match="x.json"):
     checksums.read_json(path)
+
+
+def test_a_failed_group_write_leaves_files_and_manifest_as_they_were(tmp_path, monkeypatch):
+  checksums.write_json(tmp_path / "metrics.json", {"a": 1})
+  (tmp_path / "old.png").write_bytes(b"old")
+  before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+  real = atomic.writing
+
+  @contextlib.contextmanager
+  def full_at_png(path, mode="wb"):
+    with real(path, mode) as f:
+      if Path(path).suffix == ".png":
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+      yield f
+  monkeypatch.setattr(atomic, "writing", full_at_png)
+  files = {tmp_path / "metrics.json": b'{"a": 2}\n', tmp_path / "old.png": b"new"}
+  for directory in (tmp_path, tmp_path / "fresh"):
+    directory.mkdir(exist_ok=True)
+    with pytest.raises(OSError, match="No space left"):
+      checksums.write_all({directory / p.name: data for p, data in files.items()})
+  assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+  assert list((tmp_path / "fresh").iterdir()) == []
+  monkeypatch.setattr(atomic, "writing", real)
+  checksums.write_all(files)
+  assert checksums.read_json(tmp_path / "metrics.json") == {"a": 2}
+  assert checksums.read_bytes(tmp_path / "old.png") == b"new"

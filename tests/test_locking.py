@@ -1,4 +1,4 @@
-"""Run directories are owned by one process (cvmdx_jax.locking and where it is wired in)."""
+"""Run directories are owned by one process (cvmdx_jax.storage.locking and where it is wired in)."""
 
 import fcntl
 import os
@@ -12,14 +12,15 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import locking
+from cvmdx_jax.storage import locking
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset
-from cvmdx_jax.train import diffusion, loop, tokenizer
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.train import diffusion, tokenizer
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
-_HOLDER = ("import sys, time\nfrom cvmdx_jax import locking\n"
+_HOLDER = ("import sys, time\nfrom cvmdx_jax.storage import locking\n"
            "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n")
 
 
@@ -64,21 +65,22 @@ def test_refused_training_leaves_the_run_byte_identical(tmp_path, holder):
   init_fn, step_fn = toy.make_task()
   args = dict(workdir=tmp_path, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(20),
               batch_size=4, seed=0, fingerprint={"toy": 1})
-  loop.train(num_epochs=1, **args)
+  toy.train(num_epochs=1, **args)
   before = _snapshot(tmp_path)
   proc = holder(tmp_path)
   before[".lock"] = _snapshot(tmp_path)[".lock"]  # now names the holder
   with pytest.raises(locking.WorkdirLockedError, match=str(proc.pid)):
-    loop.train(num_epochs=3, **args)  # would append to metrics.jsonl and checkpoint
+    toy.train(num_epochs=3, **args)  # would append to metrics.jsonl and checkpoint
   assert _snapshot(tmp_path) == before
 
 
 def _tokenizer(workdir):
-  tokenizer.train_and_evaluate(tokenizer_config.get_config("tiny"), workdir)
+  tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")),
+                               workdir)
 
 
 def _diffusion(workdir):
-  diffusion.train_and_evaluate(diffusion_config.get_config("tiny"), workdir)
+  diffusion.train(DiffusionConfig.from_config(diffusion_config.get_config("tiny")), workdir)
 
 
 def _dataset(workdir):
@@ -114,7 +116,7 @@ def test_evaluate_script_answers_a_locked_workdir_with_one_line_and_exit_2(tmp_p
 
 def test_holds_nest_in_one_process_and_are_released(tmp_path):
   with locking.hold(tmp_path) as path:
-    with locking.hold(tmp_path):  # the trainer holds it, then the shared loop again
+    with locking.hold(tmp_path):  # a nested hold of the same process
       pass
     fd = os.open(path, os.O_RDWR)  # still held by the outer block: another fd is refused
     try:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from cvmdx_jax import metrics
+from cvmdx_jax.evaluation import metrics
 
 
 def _line(dx, dy, t=125):

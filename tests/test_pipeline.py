@@ -1,12 +1,14 @@
 """Smoke test of the whole pipeline on tiny configs: SUMO data -> tokeniser ->
 diffusion -> predictor -> evaluation report; plus the predictor's guarantees."""
 
+import contextlib
 import dataclasses
+import errno
 import json
 import os
-import shutil
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import jax
@@ -19,16 +21,28 @@ from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import checkpointing, ego_motion
-from cvmdx_jax import runs as runs_lib
+from cvmdx_jax import ego_motion
+from cvmdx_jax.runs import fingerprints
+from cvmdx_jax.runs import loaders as runs_lib
+from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.storage import atomic, checkpointing
 from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.predict import IncompatibleRunsError, OutOfDistributionWarning, Predictor
-from cvmdx_jax.train import baseline, diffusion, loop, tokenizer
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
+from cvmdx_jax.train import baseline, diffusion, tokenizer
+from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def _train_tokenizer(config, workdir):
+  return tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(config), workdir)
+
+
+def _train_diffusion(config, workdir):
+  return diffusion.train(DiffusionConfig.from_config(config), workdir)
 
 
 @pytest.fixture(scope="module")
@@ -38,10 +52,10 @@ def runs(tmp_path_factory):
   dataset.build(dataset_config.get_config("tiny"), data_dir)
   tok = tokenizer_config.get_config("tiny")
   tok.data_dir = str(data_dir)
-  tokenizer.train_and_evaluate(tok, root / "tokenizer")
+  _train_tokenizer(tok, root / "tokenizer")
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(data_dir), str(root / "tokenizer")
-  diffusion.train_and_evaluate(diff, root / "diffusion")
+  _train_diffusion(diff, root / "diffusion")
   return root
 
 
@@ -80,7 +94,7 @@ def test_report_has_every_method_subset_and_figure(runs):
 def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatch):
   config = baseline_config.get_config("tiny")
   config.data_dir, config.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
-  baseline.train_and_evaluate(config, tmp_path / "baseline")
+  baseline.train(BaselineConfig.from_config(config), tmp_path / "baseline")
   kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
             data_dir=runs / "data", max_scenarios=12, ddpm_scenarios=0)
   report.run(**kw, workdir=tmp_path / "with", baseline_dir=tmp_path / "baseline")
@@ -98,16 +112,16 @@ def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatc
   for method in without:  # the baseline changes no other row
     if method != "_meta":
       assert with_[method] == without[method]
-  assert with_["_meta"]["baseline"]["epoch"] == learned_baseline.load(tmp_path / "baseline").epoch
+  assert with_["_meta"]["baseline"]["epoch"] == runs_lib.load_baseline(tmp_path / "baseline").epoch
   assert without["_meta"]["baseline"] is None
   table = (tmp_path / "with" / "results.md").read_text()
   assert "| MLP, 3 heads (WTA): best of K |" in table
   # a baseline trained on another tokeniser's tokens is refused before anything is written
-  bundle = learned_baseline.load(tmp_path / "baseline")
+  bundle = runs_lib.load_baseline(tmp_path / "baseline")
   saved = bundle.fingerprint.to_dict()
   other = dataclasses.replace(bundle, fingerprint=ml_collections.FrozenConfigDict(
       {**saved, "tokenizer": {**saved["tokenizer"], "step": -1}}))
-  monkeypatch.setattr(learned_baseline, "load", lambda _: other)
+  monkeypatch.setattr(runs_lib, "load_baseline", lambda _: other)
   with pytest.raises(learned_baseline.IncompatibleBaselineError, match="step"):
     report.run(**kw, workdir=tmp_path / "refused", baseline_dir=tmp_path / "baseline")
   assert not (tmp_path / "refused").exists()
@@ -134,6 +148,33 @@ def test_report_sampling_overrides_reach_the_predictor(runs):
   table = (runs / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
   assert "out of distribution" in table and "Spearman" in table
+
+
+def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
+  """ENOSPC while writing a figure: a fresh workdir is not left behind, an earlier
+  report stays byte-identical; no temporaries either way."""
+  kwargs = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+                data_dir=runs / "data", max_scenarios=6, ddpm_scenarios=0)
+  real = atomic.writing
+
+  @contextlib.contextmanager
+  def full_at_a_figure(path, mode="wb"):
+    with real(path, mode) as f:
+      if Path(path).name != "predictions_lcr.png":
+        yield f
+      else:
+        yield types.SimpleNamespace(write=lambda data: (_ for _ in ()).throw(
+            OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+  fresh, kept = tmp_path / "fresh", tmp_path / "kept"
+  report.run(workdir=kept, seed=1, **kwargs)
+  before = {p.name: p.read_bytes() for p in kept.iterdir()}
+  assert {"metrics.json", "results.md", "predictions_lcr.png", "checksums.json"} <= set(before)
+  monkeypatch.setattr(atomic, "writing", full_at_a_figure)
+  for workdir in (fresh, kept):
+    with pytest.raises(OSError, match="No space left"):
+      report.run(workdir=workdir, seed=0, **kwargs)
+  assert not fresh.exists()  # the lock removes the directory it made, left empty
+  assert {p.name: p.read_bytes() for p in kept.iterdir()} == before
 
 
 def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatch, capsys):
@@ -210,25 +251,18 @@ def test_predictor_is_deterministic_and_chunk_independent(runs):
   np.testing.assert_allclose(a.hypotheses.probs.sum(-1), 1.0, atol=1e-6)
 
 
-def test_load_denoiser_restores_the_ema_params_alone_also_from_old_runs(runs, tmp_path):
+def test_load_denoiser_restores_the_ema_params_alone(runs):
   denoiser = runs_lib.load_denoiser(runs / "diffusion")
   # reference: the whole train state, restored with the trainer's init_fn
-  config = ml_collections.ConfigDict(json.loads((runs / "diffusion" / "config.json").read_text()))
-  _, init_fn, _ = diffusion.init_and_step(config, denoiser.unet, total_steps=1)
-  state, fingerprint = loop.load_latest(runs / "diffusion", init_fn)
+  config = DiffusionConfig.from_config(json.loads((runs / "diffusion" / "config.json").read_text()))
+  assert config == denoiser.config
+  _, init_fn, _ = diffusion.init_and_step(config, total_steps=1)
+  state, fingerprint = toy.restore(runs / "diffusion", init_fn)
   jax.tree.map(np.testing.assert_array_equal, denoiser.params, state["ema_params"])
   assert denoiser.fingerprint.to_dict()["dataset_id"] == fingerprint["dataset_id"]
   x, t, q = jnp.ones((2, 125, 2)) * 0.3, jnp.array([10, 900]), jnp.array([0, denoiser.null_token])
   np.testing.assert_array_equal(denoiser.apply(x, t, q), unet1d.apply_unet(
       unet1d.make_graphdef(denoiser.unet), state["ema_params"], x, t, q))
-  # a run written when parameters were nnx.State (leaves '<path>/value') still loads
-  old = tmp_path / "old"
-  shutil.copytree(runs / "diffusion", old, ignore=shutil.ignore_patterns("checkpoints"))
-  wrapped = {**state, "ema_params": jax.tree.map(lambda a: {"value": a}, state["ema_params"])}
-  with checkpointing.Checkpoints(old / "checkpoints") as ckpts:
-    ckpts.save(1, wrapped, {"fingerprint": fingerprint})
-  jax.tree.map(np.testing.assert_array_equal, runs_lib.load_denoiser(old).params,
-               state["ema_params"])
 
 
 def test_predictor_refuses_bad_scenarios(runs):
@@ -245,7 +279,7 @@ def test_predictor_refuses_bad_scenarios(runs):
 def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):
   other = tokenizer_config.get_config("tiny,q=5")
   other.data_dir = str(runs / "data")
-  tokenizer.train_and_evaluate(other, tmp_path / "other_tokenizer")
+  _train_tokenizer(other, tmp_path / "other_tokenizer")
   with pytest.raises(IncompatibleRunsError, match="5"):
     Predictor.load(tmp_path / "other_tokenizer", runs / "diffusion")
 
@@ -254,7 +288,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   diff.diffusion.conditioning = "ego_film_residual"
-  data, *_ = diffusion.training_data(diff)
+  data, *_ = diffusion.training_data(DiffusionConfig.from_config(diff))
   train = dataset.load_split(runs / "data", "train")
   ego = np.asarray(ego_motion.ego_features(train.xi, train.mask))
   base = np.asarray(ego_motion.residual_controls(ego, diff.diffusion.residual_decay_s))
@@ -262,9 +296,9 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   np.testing.assert_allclose(data["ego"], ego)
   np.testing.assert_allclose(data["x0"], np.clip((train.controls - base) / scale, -1, 1),
                              atol=1e-6)
-  diffusion.train_and_evaluate(diff, tmp_path / "ego")
+  _train_diffusion(diff, tmp_path / "ego")
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "ego")
-  assert predictor.sampling.conditioning == "ego_film_residual"
+  assert predictor.denoiser.config.diffusion.conditioning == "ego_film_residual"
   assert predictor.denoiser.unet.cond_dim == ego_motion.NUM_FEATURES
   scenarios = dataset.load_split(runs / "data", "test").take(np.arange(5))
   a = predictor(scenarios, seed=1)
@@ -273,7 +307,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   assert a.prediction.trajectories.shape == (5, 9, 125, 2)
   with pytest.raises(ValueError, match="diffusion.conditioning"):
     diff.diffusion.conditioning = "ego"
-    diffusion.train_and_evaluate(diff, tmp_path / "bad")
+    _train_diffusion(diff, tmp_path / "bad")
   assert not (tmp_path / "bad").exists()
 
 
@@ -283,7 +317,7 @@ def test_denoiser_of_another_feature_count_is_refused(runs, tmp_path, monkeypatc
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   diff.diffusion.conditioning = "ego_film"
-  diffusion.train_and_evaluate(diff, tmp_path / "ego")
+  _train_diffusion(diff, tmp_path / "ego")
   monkeypatch.setattr(ego_motion, "NUM_FEATURES", ego_motion.NUM_FEATURES + 1)
   with pytest.raises(checkpointing.CheckpointMismatchError, match="ego-motion features"):
     Predictor.load(runs / "tokenizer", tmp_path / "ego")
@@ -354,21 +388,20 @@ def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, mon
 def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
-  plain, num_tokens, dataset_id, meta = diffusion.training_data(diff)
+  plain, num_tokens, dataset_id, meta = diffusion.training_data(DiffusionConfig.from_config(diff))
   assert "class_weight" not in plain  # the paper's balanced classes: no extra array
-  fingerprint = runs_lib.diffusion_fingerprint(diff, runs_lib.unet_config(diff, num_tokens),
-                                               dataset_id, meta)
-  assert "class_weights" not in fingerprint
+  fingerprint = fingerprints.diffusion(DiffusionConfig.from_config(diff).with_tokens(num_tokens),
+                                       dataset_id, meta)
+  assert fingerprint["class_weights"] == [1.0, 1.0, 1.0]
   diff.diffusion.class_weights = (3.0, 1.0, 0.5)
-  data, *_ = diffusion.training_data(diff)
+  config = DiffusionConfig.from_config(diff).with_tokens(num_tokens)
+  data, *_ = diffusion.training_data(config)
   labels = dataset.load_split(runs / "data", "train").label
   np.testing.assert_array_equal(data["class_weight"], np.array([3.0, 1.0, 0.5])[labels])
-  assert runs_lib.diffusion_fingerprint(diff, runs_lib.unet_config(diff, num_tokens), dataset_id,
-                                        meta)["class_weights"] == [3.0, 1.0, 0.5]
+  assert fingerprints.diffusion(config, dataset_id, meta)["class_weights"] == [3.0, 1.0, 0.5]
   # the step multiplies the loop's padding weight by the class weight: a zero class weight
   # removes a row from the loss exactly as padding does
-  cfg = runs_lib.unet_config(diff, num_tokens)
-  _, init_fn, step_fn = diffusion.init_and_step(diff, cfg, total_steps=10)
+  _, init_fn, step_fn = diffusion.init_and_step(config, total_steps=10)
   state = init_fn(jax.random.key(0))
   rows = np.arange(8)
   batch = {"x0": jnp.asarray(data["x0"][rows]), "q": jnp.asarray(data["q"][rows])}
@@ -383,4 +416,4 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   for bad in [(1.0, 1.0), (1.0, 0.0, 1.0), (1.0, float("nan"), 1.0)]:
     diff.diffusion.class_weights = bad
     with pytest.raises(ValueError, match="diffusion.class_weights"):
-      diffusion.training_data(diff)
+      DiffusionConfig.from_config(diff)

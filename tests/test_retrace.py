@@ -16,14 +16,15 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import constants, predict, runs
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax import constants
 from cvmdx_jax.data import from_arrays
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.inference import predictor as predict
+from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import unet1d, uncertainty
-from cvmdx_jax.train import loop
-from cvmdx_jax.train import tokenizer as tokenizer_train
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from tests.train import toy
 from tests.train.toy_job import task
 
 
@@ -36,18 +37,16 @@ def _counting(fn, counter: list):
 
 def _random_predictor(chunk_size: int) -> predict.Predictor:
   """A Predictor of untrained :tiny models (the weights do not matter for tracing)."""
-  tok_cfg = tokenizer_train.model_config(tokenizer_config.get_config("tiny"))
+  tok_cfg = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")).model
   tok_graphdef, tok_params = tokenizer_lib.init_tokenizer(tok_cfg, jax.random.key(0))
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
   gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = runs.TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
+  tokenizer = loaders.TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
                                    ml_collections.FrozenConfigDict({"dataset_id": "none"}))
-  config = diffusion_config.get_config("tiny")
-  unet = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=q)
-  graphdef, params = unet1d.init_unet(unet, jax.random.key(1))
-  denoiser = runs.Denoiser(params, graphdef, unet, ml_collections.FrozenConfigDict(config),
-                           ml_collections.FrozenConfigDict({}))
+  config = DiffusionConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
+  graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
+  denoiser = loaders.Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
   sampling = SamplingConfig(num_samples=3, steps=2)
   return predict.Predictor(tokenizer, denoiser, sampling, chunk_size=chunk_size)
 
@@ -80,6 +79,6 @@ def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
 def test_training_step_compiles_once(tmp_path, name):
   init_fn, step_fn, data = task(name, 12)  # batch 8: one full and one padded batch an epoch
   traces = []
-  loop.train(workdir=tmp_path, init_fn=init_fn, step_fn=_counting(step_fn, traces), data=data,
+  toy.train(workdir=tmp_path, init_fn=init_fn, step_fn=_counting(step_fn, traces), data=data,
              batch_size=8, num_epochs=2, seed=0, fingerprint={"task": name})
   assert len(traces) == 1

@@ -1,5 +1,6 @@
 """Run-directory format and config plumbing: the prediction path stands without the
-trainers; config sections become the model / sampling dataclasses."""
+trainers, the loop without the prediction path; config sections become the typed configs,
+each field checked by the dataclass that holds it."""
 
 import os
 import subprocess
@@ -11,30 +12,39 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import runs
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax.config_dataclass import ConfigFieldError, to_dataclass
 from cvmdx_jax.diffusion import GuidanceConfig
-from cvmdx_jax.inference import SamplingConfig
+from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.train import tokenizer as tokenizer_train
+from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_prediction_path_does_not_import_the_trainers():
-  code = ("import sys, cvmdx_jax.predict, cvmdx_jax.runs, cvmdx_jax.inference; "
-          "print(sorted(m for m in sys.modules if m.startswith('cvmdx_jax.train')))")
+def _imported(modules: str, prefix: str) -> list[str]:
+  code = (f"import sys, {modules}; "
+          f"print(sorted(m for m in sys.modules if m.startswith({prefix!r})))")
   proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
                         text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
   assert proc.returncode == 0, proc.stderr[-2000:]
-  assert proc.stdout.strip().splitlines()[-1] == "[]"
+  return eval(proc.stdout.strip().splitlines()[-1])  # a printed list of names
+
+
+def test_prediction_path_does_not_import_the_trainers():
+  assert _imported("cvmdx_jax.inference.predictor, cvmdx_jax.runs.loaders",
+                   "cvmdx_jax.train") == []
+
+
+def test_the_training_loop_does_not_import_the_inference_path():
+  assert _imported("cvmdx_jax.train.loop", "cvmdx_jax.inference") == []
+  assert "cvmdx_jax.runs.loaders" not in _imported("cvmdx_jax.train.loop", "cvmdx_jax.runs")
 
 
 def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
   section = ml_collections.ConfigDict({"steps": 4, "guidance": {"w_min": 0.3},
                                        "hypotheses": {"c_max": 2}})
-  out = to_dataclass(SamplingConfig, section, control_scale=[4.0, 0.1])
-  assert out.steps == 4 and out.control_scale == (4.0, 0.1)  # list -> tuple
+  out = to_dataclass(SamplingConfig, section, clip_x0=0.5)
+  assert out.steps == 4 and out.clip_x0 == 0.5
   assert out.guidance == GuidanceConfig(w_min=0.3) and out.hypotheses.c_max == 2
   assert out.num_samples == 9  # left out: the dataclass default
   hash(out)  # usable as a static jit argument
@@ -42,20 +52,57 @@ def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
     to_dataclass(unet1d.UNetConfig, {"channel_mul": [1, 2]})
 
 
-def test_run_configs_become_the_model_and_sampling_settings():
-  demo = diffusion_config.get_config("demo")
-  sampling = runs.sampling_config(demo)
-  assert sampling.control_scale == (4.0, 0.1) and sampling.clip_x0 == 1.0
-  assert sampling.guidance.w_max_base == 0.5
-  assert (sampling.sampler, sampling.steps) == ("dpmpp2m", 3)  # chosen on val (BUILD_NOTES)
-  assert tuple(demo.diffusion.class_weights) == (3.0, 1.0, 1.0)  # chosen on val
-  assert tuple(diffusion_config.get_config("paper").diffusion.class_weights) == (1.0, 1.0, 1.0)
-  demo.sampling.clip_x0 = 0.0  # 0 = no clipping
-  assert runs.sampling_config(demo).clip_x0 is None
-  unet = to_dataclass(unet1d.UNetConfig, demo.model, num_tokens=60)
-  assert unet.channel_mult == (1, 2, 2, 2) and unet.attention_levels == (3,)
-  assert unet.null_token == 60
-  tok = tokenizer_train.model_config(tokenizer_config.get_config("tiny,quantizer=vq,q=5"))
-  assert tok.quantizer.kind == "vq" and tok.quantizer.codebook_size == 5
-  assert tok.quantizer.latent_dim == tok.encoder.latent_dim == 4
-  assert tok.encoder.channels == (8, 8) and tok.ego_weight == 30.0
+def test_run_configs_become_the_typed_configs():
+  demo = DiffusionConfig.from_config(diffusion_config.get_config("demo"))
+  assert demo.diffusion.control_scale == (4.0, 0.1) and demo.sampling.clip_x0 == 1.0
+  assert demo.sampling.guidance.w_max_base == 0.5
+  assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
+  assert demo.diffusion.class_weights == (3.0, 1.0, 1.0)  # chosen on val
+  assert demo.diffusion.weighted_classes
+  paper = DiffusionConfig.from_config(diffusion_config.get_config("paper"))
+  assert paper.diffusion.class_weights == (1.0, 1.0, 1.0) and not paper.diffusion.weighted_classes
+  assert demo.model.channel_mult == (1, 2, 2, 2) and demo.model.attention_levels == (3,)
+  assert demo.model.num_tokens == 0 and demo.with_tokens(60).model.null_token == 60
+  assert demo.model.cond_dim > 0 and paper.model.cond_dim == 0  # ego_film_residual vs token
+  unclipped = diffusion_config.get_config("demo")
+  unclipped.sampling.clip_x0 = 0.0  # 0 = no clipping
+  assert DiffusionConfig.from_config(unclipped).sampling.clip_x0 is None
+  tok = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny,quantizer=vq,q=5"))
+  assert tok.model.quantizer.kind == "vq" and tok.model.quantizer.codebook_size == 5
+  assert tok.model.quantizer.latent_dim == tok.model.encoder.latent_dim == 4
+  assert tok.model.encoder.channels == (8, 8) and tok.model.ego_weight == 30.0
+  hash(demo), hash(tok)
+
+
+def _with(config, field: str, value):
+  """`config` with its dotted `field` set to `value`."""
+  *path, name = field.split(".")
+  section = config
+  for part in path:
+    section = section[part]
+  section[name] = value
+  return config
+
+
+@pytest.mark.parametrize("field, value, problem", [
+    ("train.num_epochs", -3, "must be > 0"),
+    ("diffusion.cond_drop_prob", 1.0, "must be in [0, 1)"),
+    ("diffusion.class_weights", (1.0, 0.0, 1.0), "must be > 0"),
+    ("diffusion.class_weights", (1.0, 2.0), "need 3 positive finite weights"),
+    ("model.dropout", float("nan"), "must be finite"),
+    ("sampling.guidance.t_c", 0.0, "must be > 0"),
+    ("seed", 2**32, "must be in [0, 2**32)"),
+])
+def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value, problem):
+  with pytest.raises(ConfigFieldError) as error:
+    DiffusionConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
+  assert error.value.field == field and problem in error.value.problem
+
+
+@pytest.mark.parametrize("field, value", [
+    ("quantizer.usage_decay", 1.5), ("model.encoder.latent_dim", 0),
+    ("uncertainty.ridge", -1.0), ("encode_batch", 0), ("train.grad_clip", -1.0)])
+def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value):
+  with pytest.raises(ConfigFieldError) as error:
+    TokenizerRunConfig.from_config(_with(tokenizer_config.get_config("tiny"), field, value))
+  assert error.value.field == field

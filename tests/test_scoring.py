@@ -7,7 +7,7 @@ import pytest
 
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.evaluation import learned_baseline, scoring
-from cvmdx_jax.inference import Prediction
+from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal.hypotheses import Hypotheses
 
 

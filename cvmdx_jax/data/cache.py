@@ -1,44 +1,32 @@
-"""Scenario cache: one float32 .npz per split plus metadata.json, written atomically.
+"""Scenario cache: one float32 .npz per split plus metadata.json, written atomically and
+checksummed (`storage.checksums`, the cache directory's checksums.json).
 
 metadata.json = {"format_version", "settings", "sources": [[name, bytes, sha256], ...],
-"splits": {name: {"file", "bytes", "sha256", "count"}}}; source names are relative to the
-source directory, so the same data under another spelling of its path (relative, absolute,
-through a symlink) is the same dataset. It is written last, and each split file's size and
-hash are checked on reading, so a cache cut short by a crash or made with other settings or
+"splits": {name: {"file", "count"}}}; source names are relative to the source directory,
+so the same data under another spelling of its path (relative, absolute, through a
+symlink) is the same dataset. It is written last, and each split file is verified against
+its checksum on reading, so a cache cut short by a crash or made with other settings or
 sources is never taken for a valid one; metadata of any other shape counts as no cache.
-The dataset id (`dataset_id`) is a hash of the format version, settings and sources only.
+The dataset id (`dataset_id`) is the `storage.identity.content_id` of the format version,
+settings and sources only.
 """
 
-import hashlib
-import io
-import json
 from pathlib import Path
 
-import numpy as np
 
-from cvmdx_jax import atomic
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.storage import checksums, identity
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 2  # a cache of an older layout has no checksums.json: rebuilt
 METADATA = "metadata.json"
-_CHUNK = 1 << 20
-
-
-def file_sha256(path) -> str:
-  """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
-  digest = hashlib.sha256()
-  with open(path, "rb") as handle:
-    while chunk := handle.read(_CHUNK):
-      digest.update(chunk)
-  return digest.hexdigest()
 
 
 def sources(root, paths) -> list:
   """[[name relative to `root` (posix), bytes, sha256], ...] sorted by name."""
   root = Path(root)
-  rows = [[Path(p).relative_to(root).as_posix(), Path(p).stat().st_size, file_sha256(p)]
-          for p in paths]
+  rows = [[Path(p).relative_to(root).as_posix(), Path(p).stat().st_size,
+           checksums.file_sha256(p)] for p in paths]
   return sorted(rows)
 
 
@@ -48,25 +36,16 @@ def write(cache_dir, splits: dict, settings: dict, sources: list) -> dict:
   cache_dir.mkdir(parents=True, exist_ok=True)
   entries = {}
   for name, scen in splits.items():
-    buffer = io.BytesIO()
-    np.savez(buffer, **scen.as_dict())
-    data = buffer.getvalue()
-    atomic.write_bytes(cache_dir / f"{name}.npz", data)
-    entries[name] = {"file": f"{name}.npz", "bytes": len(data),
-                     "sha256": hashlib.sha256(data).hexdigest(), "count": len(scen)}
+    checksums.write_npz(cache_dir / f"{name}.npz", **scen.as_dict())
+    entries[name] = {"file": f"{name}.npz", "count": len(scen)}
   metadata = {"format_version": FORMAT_VERSION, "settings": settings,
               "sources": [list(s) for s in sources], "splits": entries}
-  atomic.write_bytes(cache_dir / METADATA, json.dumps(metadata, indent=1, sort_keys=True).encode())
+  checksums.write_json(cache_dir / METADATA, metadata, indent=1, sort_keys=True)
   return metadata
 
 
 def _is_int(value) -> bool:
   return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_sha256(value) -> bool:
-  return (isinstance(value, str) and len(value) == 64
-          and all(c in "0123456789abcdef" for c in value))
 
 
 def _well_formed(metadata) -> bool:
@@ -78,20 +57,19 @@ def _well_formed(metadata) -> bool:
     return False
   for source in metadata["sources"]:
     if not (isinstance(source, list) and len(source) == 3 and isinstance(source[0], str)
-            and _is_int(source[1]) and _is_sha256(source[2])):
+            and _is_int(source[1]) and isinstance(source[2], str)):
       return False
   for name, entry in metadata["splits"].items():
     if not (name.isidentifier() and isinstance(entry, dict) and entry.get("file") == f"{name}.npz"
-            and _is_int(entry.get("bytes")) and _is_sha256(entry.get("sha256"))
             and _is_int(entry.get("count"))):
       return False
   return True
 
 
 def read_metadata(cache_dir) -> dict | None:
-  """The metadata, or None where there is no readable, well-formed cache."""
+  """The metadata, or None where there is no readable, intact, well-formed cache."""
   try:
-    metadata = json.loads((Path(cache_dir) / METADATA).read_text())
+    metadata = checksums.read_json(Path(cache_dir) / METADATA)
   except (OSError, ValueError):
     return None
   return metadata if _well_formed(metadata) else None
@@ -99,14 +77,16 @@ def read_metadata(cache_dir) -> dict | None:
 
 def matches(metadata: dict | None, settings: dict, sources: list) -> bool:
   """True when `metadata` was made with these settings from these source files."""
-  return (metadata is not None and metadata["settings"] == json.loads(json.dumps(settings))
-          and metadata["sources"] == [list(s) for s in sources])
+  return metadata is not None and not identity.differing_keys(
+      {"settings": metadata["settings"], "sources": metadata["sources"]},
+      {"settings": settings, "sources": sources})
 
 
 def dataset_id(metadata: dict) -> str:
-  """12 hex digits of sha256 over format version, settings and sources (not the paths)."""
-  content = {k: metadata[k] for k in ("format_version", "settings", "sources")}
-  return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:12]
+  """12 hex digits of the content id of format version, settings and sources (not the
+  paths)."""
+  return identity.content_id({k: metadata[k] for k in ("format_version", "settings",
+                                                       "sources")})[:12]
 
 
 def read_split(cache_dir, split: str) -> scenarios_lib.Scenarios:
@@ -120,13 +100,13 @@ def read_split(cache_dir, split: str) -> scenarios_lib.Scenarios:
   if split not in entries:
     raise DataError(cache_dir / METADATA, f"unknown split '{split}', available: "
                     f"{sorted(entries)}", column="split")
-  entry, path = entries[split], cache_dir / entries[split]["file"]
+  path = cache_dir / entries[split]["file"]
   try:
-    data = path.read_bytes()
+    arrays = checksums.read_npz(path)
   except OSError as err:
     raise DataError(path, f"cache file unreadable ({err})") from err
-  if len(data) != entry["bytes"] or hashlib.sha256(data).hexdigest() != entry["sha256"]:
-    raise DataError(path, "cache file does not match metadata.json (interrupted build?)")
-  with np.load(io.BytesIO(data)) as arrays:
-    return scenarios_lib.Scenarios(**{k: arrays[k] for k in scenarios_lib.FIELDS}).validate(
-        str(path))
+  except checksums.CorruptRunError as err:
+    raise DataError(path, f"cache file does not match its checksum (interrupted build?): "
+                    f"{err}") from err
+  return scenarios_lib.Scenarios(**{k: arrays[k] for k in scenarios_lib.FIELDS}).validate(
+      str(path))

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 
-from cvmdx_jax import atomic, constants
+from cvmdx_jax import constants
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 

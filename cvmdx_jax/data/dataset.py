@@ -17,13 +17,43 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import atomic, locking
+from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
+                                        ConfigFieldError, check_ranges)
+from cvmdx_jax.storage import atomic, identity, locking
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
 
 SOURCES = ("sumo", "highd", "cvmd_mat")
 SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood
 _REQUIRED = ("train", "val", "test")
+# Ranges of the numeric fields of configs/dataset.py per section (a tuple: each element).
+CONFIG_RANGES = {
+    "": {"seed": SEED, "mat_val_fraction": BELOW_ONE},
+    "splits": dict.fromkeys(("train", "val", "test", "test_ood"), POSITIVE),
+    "extraction": {"seed": SEED, "lc_offsets_s": POSITIVE, "kl_stride_s": POSITIVE,
+                   "control_smoothing": NON_NEGATIVE, "control_iterations": POSITIVE},
+    "sumo": {"seed": SEED, "warmup_s": NON_NEGATIVE, "truck_share": FRACTION,
+             **dict.fromkeys(("workers", "duration_s", "road_length_m", "section_length_m",
+                              "lanes", "lane_width_m", "speed_limits_kmh", "flow_per_lane",
+                              "car_types", "truck_types"), POSITIVE)},
+    "sumo.recordings": {"train": POSITIVE, "val": POSITIVE, "test": POSITIVE,
+                        "test_ood": NON_NEGATIVE},
+    "sumo.held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
+}
+
+
+def checked_config(config):
+  """`config` (configs/dataset.py) once every numeric field is in its range
+  (`CONFIG_RANGES`); ConfigFieldError naming the dotted field otherwise."""
+  for section, ranges in CONFIG_RANGES.items():
+    node = config
+    for part in section.split(".") if section else ():
+      node = node[part]
+    try:
+      check_ranges(node, ranges)
+    except ConfigFieldError as e:
+      raise (e.within(section) if section else e) from None
+  return config
 
 
 def _settings(config) -> dict:
@@ -35,7 +65,7 @@ def _settings(config) -> dict:
     c.pop("sumo")
   c.pop("highd_dir", None)
   c.pop("mat_dir", None)
-  return json.loads(json.dumps(c))
+  return identity.to_json(c, "dataset settings")
 
 
 def _sumo_recordings(config, data_dir: Path) -> Path:
@@ -110,6 +140,7 @@ def build(config, data_dir) -> dict:
     as it was.
   """
   data_dir = Path(data_dir)
+  checked_config(config)
   if config.source not in SOURCES:
     raise DataError(data_dir, f"unknown source '{config.source}', expected one of {SOURCES}",
                     column="config.source")

@@ -1,8 +1,9 @@
-"""`DataError`: bad input data, naming the file, row and column at fault."""
+"""`DataError`: bad input data, naming the file, row and column at fault; `DataWarning`:
+the same for a bad cell the pipeline does not read."""
 
 
-class DataError(ValueError):
-  """Bad input data.
+class _Located:
+  """Message prefix `file <path>, row <row>, column '<column>': `.
 
   Attributes:
     path: the file (or directory) at fault.
@@ -18,3 +19,11 @@ class DataError(ValueError):
     if column is not None:
       where.append(f"column '{column}'")
     super().__init__(f"{', '.join(where)}: {message}")
+
+
+class DataError(_Located, ValueError):
+  """Bad input data (attributes of `_Located`)."""
+
+
+class DataWarning(_Located, UserWarning):
+  """A bad cell in a column the pipeline does not read (attributes of `_Located`)."""

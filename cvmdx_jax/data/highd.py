@@ -1,7 +1,10 @@
 """Raw highD recordings: read, validate, move to a road-aligned frame; `load_scenarios`.
 
 A recording XX is three CSV files in one directory: XX_tracks.csv (one row per vehicle and
-frame), XX_tracksMeta.csv (one row per vehicle), XX_recordingMeta.csv (one row). Raw
+frame), XX_tracksMeta.csv (one row per vehicle), XX_recordingMeta.csv (one row). XX is the
+recording id in decimal digits, with any number of leading zeros (highD writes two, `01`;
+`1_` and `002_` name recordings 1 and 2); the three files of a recording share the prefix
+of its tracks file, and two tracks files of one id (`1_` and `01_`) are refused. Raw
 coordinates are image-style: x to the right, y down, (x, y) the upper-left corner of the
 bounding box, `width` the vehicle length and `height` its width; drivingDirection 1 drives
 toward -x (upper lanes), 2 toward +x (lower lanes).
@@ -9,23 +12,26 @@ toward -x (upper lanes), 2 toward +x (lower lanes).
 Road frame per direction (right-handed, x along travel, y to the driver's left), applied to
 the bounding-box centre and to velocities: direction 2: (x, -y); direction 1: (-x, y).
 
-Physical ranges, checked on every row (`RANGES`; a `DataError` names the first row outside):
+Columns the pipeline reads (`READ_COLUMNS`) are checked strictly: a `DataError` names the
+first row outside these ranges (`RANGES`):
 - every numeric cell finite and within +-1e9 (catches 1e30 / 1e40 anywhere);
 - integer columns (frame, ids, laneId, frame counts, drivingDirection, frameRate) hold
   whole numbers: frame, initialFrame, finalFrame in [0, 1e7]; id in [1, 1e6], neighbour
   ids in [0, 1e6]; laneId in [1, 100]; numFrames in [1, 1e7];
 - tracks: x, y within +-1e4 m; width (vehicle length) in (0, 50] m, height (vehicle
-  width) in (0, 10] m; |xVelocity| <= 100 m/s, |yVelocity| <= 20 m/s; |xAcceleration|,
-  |yAcceleration| <= 20 m/s^2; tracksMeta width, height in the same size ranges;
+  width) in (0, 10] m; |xVelocity| <= 100 m/s, |yVelocity| <= 20 m/s;
 - drivingDirection agrees with the x-motion: xVelocity * (+1 for direction 2, -1 for 1)
   >= -1 m/s (a standing vehicle may jitter by rounding), and between consecutive frames of
   a track the centre moves by the mean of the two xVelocity values times 1/25 s within 1 m
   in x, and by at most 20 m/s / 25 Hz = 0.8 m in y;
 - tracksMeta finalFrame = initialFrame + numFrames - 1;
-- recordingMeta lane markings: ";"-separated finite numbers within +-1e4 m, at least two
-  per list, strictly ascending.
-Other columns (sight distances, dhw, thw, ttc, preceding velocity, meta statistics) are
-unused and only checked for finiteness and the +-1e9 bound.
+- recordingMeta frameRate = 25 and lane markings: ";"-separated finite numbers within
+  +-1e4 m, at least two per list, strictly ascending.
+Every other column (accelerations, sight distances, dhw, thw, ttc, preceding velocity,
+tracksMeta sizes and statistics, the other recordingMeta fields) is not read: an empty,
+non-numeric, non-finite or out-of-range cell there (|value| > 1e9; accelerations beyond
++-20 m/s^2, tracksMeta sizes outside the tracks ranges) is a `DataWarning` naming the file,
+the first such row and the column, one per column, and the recording is read.
 
 Errors name the file, the 1-based line (the header is line 1) and the column (none for a
 missing or empty file, or a line with more fields than the header). A blank line inside a
@@ -34,6 +40,7 @@ file is an error at its line; trailing blank lines are ignored.
 
 import dataclasses
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +49,7 @@ import pandas as pd
 from cvmdx_jax import constants
 from cvmdx_jax.data import extract
 from cvmdx_jax.data import scenarios as scenarios_lib
-from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.data.errors import DataError, DataWarning
 
 TRACKS_COLUMNS = (
     "frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity", "xAcceleration",
@@ -61,13 +68,22 @@ _TEXT_COLUMNS = ("class", "month", "weekDay", "startTime", "upperLaneMarkings",
                  "lowerLaneMarkings")
 # Neighbour columns in `constants.VEHICLE_SLOTS[1:]` order.
 NEIGHBOUR_COLUMNS = tuple(f"{slot}Id" for slot in constants.VEHICLE_SLOTS[1:])
+COLUMNS = {"tracks": TRACKS_COLUMNS, "tracksMeta": TRACKS_META_COLUMNS,
+           "recordingMeta": RECORDING_META_COLUMNS}
+# The columns `read_recording` uses (checked strictly); the others only draw DataWarnings.
+READ_COLUMNS = {
+    "tracks": ("frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity",
+               "laneId", *NEIGHBOUR_COLUMNS),
+    "tracksMeta": ("id", "initialFrame", "finalFrame", "numFrames", "drivingDirection"),
+    "recordingMeta": ("frameRate", "upperLaneMarkings", "lowerLaneMarkings")}
 
 ABSURD = 1e9  # bound on every numeric cell
 MAX_ID = 1_000_000  # track ids index dense per-id arrays
 MAX_FRAME = 10_000_000
 _POSITION, _LENGTH, _WIDTH = (-1e4, 1e4), (0.0, 50.0), (0.0, 10.0)
 _ACCEL = (-20.0, 20.0)
-# column -> (low, high, integer); a 0.0 low bound of a size is exclusive ("> 0").
+# column -> (low, high, integer); a 0.0 low bound of a size is exclusive ("> 0"); outside
+# READ_COLUMNS a value out of range is a warning.
 RANGES = {
     "tracks": {
         "frame": (0, MAX_FRAME, True), "id": (1, MAX_ID, True), "x": (*_POSITION, False),
@@ -87,15 +103,34 @@ MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
 MAX_LATERAL_STEP = 20.0 * constants.DT  # m per frame in y
 
 
+def _tracks_files(data_dir) -> dict:
+  """{recording id: [names of its tracks files]} of the *_tracks.csv files in `data_dir`
+  whose prefix is decimal digits ('01_tracks.csv', '1_tracks.csv' -> 1)."""
+  found = {}
+  for path in sorted(Path(data_dir).glob("*_tracks.csv")):
+    stem = path.name[: -len("_tracks.csv")]
+    if re.fullmatch(r"[0-9]+", stem):
+      found.setdefault(int(stem), []).append(path.name)
+  return found
+
+
 def recording_paths(data_dir, recording_id: int) -> dict:
-  """{'tracks', 'tracksMeta', 'recordingMeta'} -> Path of recording `recording_id`."""
+  """{'tracks', 'tracksMeta', 'recordingMeta'} -> Path of recording `recording_id`: the
+  prefix of its tracks file in `data_dir` ('1_', '01_', '002_'), two digits when there is
+  none (also the names a writer uses); DataError when two tracks files have this id."""
   base = Path(data_dir)
-  return {kind: base / f"{recording_id:02d}_{kind}.csv"
-          for kind in ("tracks", "tracksMeta", "recordingMeta")}
+  names = _tracks_files(base).get(recording_id, [f"{recording_id:02d}_tracks.csv"])
+  if len(names) > 1:
+    raise DataError(base / names[0], f"recording {recording_id} has {len(names)} tracks "
+                    f"files ({', '.join(names)}); keep one")
+  prefix = names[0][: -len("tracks.csv")]
+  return {kind: base / f"{prefix}{kind}.csv" for kind in ("tracks", "tracksMeta",
+                                                          "recordingMeta")}
 
 
-def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
-  """Reads one CSV; checks its header, numeric cells, NaNs and `ranges` (see RANGES)."""
+def _read_table(path: Path, kind: str) -> pd.DataFrame:
+  """Reads one CSV of `kind` ('tracks', 'tracksMeta', 'recordingMeta'); checks its header,
+  numeric cells, NaNs and `RANGES`: DataError in `READ_COLUMNS`, DataWarning elsewhere."""
   if not path.is_file():
     raise DataError(path, "file not found")
   try:
@@ -111,37 +146,62 @@ def _read_table(path: Path, columns, ranges: dict) -> pd.DataFrame:
     where = int(line.group(1)) if line else int(row.group(1)) + 1 if row else None
     raise DataError(path, f"unreadable CSV ({str(err).strip()})", row=where) from err
   header = list(frame.columns)
-  for name in columns:
+  for name in COLUMNS[kind]:
     if name not in header:
       raise DataError(path, f"missing column (header has {header})", row=1, column=name)
   filled = np.flatnonzero(frame.notna().any(axis=1).to_numpy())
   frame = frame.iloc[:filled[-1] + 1 if len(filled) else 0]  # trailing blank lines dropped
   if len(frame) == 0:
     raise DataError(path, "no data rows", row=2)
-  for name in columns:
-    values = frame[name]
-    if name in _TEXT_COLUMNS:
-      bad = values.isna().to_numpy()
-    else:
-      if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
-        values = values.astype(str)
-      if not pd.api.types.is_numeric_dtype(values):
-        values = pd.to_numeric(values, errors="coerce")
-        bad = values.isna().to_numpy() & frame[name].notna().to_numpy()
-        if bad.any():
-          row = int(np.argmax(bad))
-          raise DataError(path, f"non-numeric value {frame[name].iloc[row]!r}",
-                          row=row + 2, column=name)
-        frame[name] = values
-      bad = ~np.isfinite(values.to_numpy(np.float64))
-    if bad.any():
-      row = int(np.argmax(bad))
-      raise DataError(path, "empty, NaN or infinite value (truncated file?)",
-                      row=row + 2, column=name)
-    if name not in _TEXT_COLUMNS:
-      _check_range(path, name, frame[name].to_numpy(np.float64),
-                   ranges.get(name, (-ABSURD, ABSURD, False)))
+  unread = []  # warned about once every read column has passed
+  for name in COLUMNS[kind]:
+    problem = _column_problem(frame, name, RANGES[kind].get(name, (-ABSURD, ABSURD, False)))
+    if problem is None:
+      continue
+    row, message, count = problem
+    if name in READ_COLUMNS[kind]:
+      raise DataError(path, message, row=row + 2, column=name)
+    cells = f"{count} cells of this column are bad" if count > 1 else "the only bad cell"
+    unread.append(DataWarning(path, f"{message} ({cells}); the column is not read, the "
+                              "recording is used", row=row + 2, column=name))
+  for warning in unread:
+    warnings.warn(warning, stacklevel=3)
   return frame
+
+
+def _column_problem(frame: pd.DataFrame, name: str, bounds) -> tuple | None:
+  """(0-based row, message, number of bad cells) of the first empty, non-numeric,
+  non-finite or out-of-`bounds` cell of column `name`, or None; a numeric column is
+  converted to float in place (bad cells NaN)."""
+  values = original = frame[name]
+  if name in _TEXT_COLUMNS:
+    bad = values.isna().to_numpy()
+    if not bad.any():
+      return None
+    return int(np.argmax(bad)), "empty value (truncated file?)", int(bad.sum())
+  if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
+    values = values.astype(str)
+  numbers = values if pd.api.types.is_numeric_dtype(values) else pd.to_numeric(
+      values, errors="coerce")
+  x = numbers.to_numpy(np.float64)
+  text = np.isnan(x) & original.notna().to_numpy()
+  outside = _outside(name, x, bounds)
+  bad = text | ~np.isfinite(x) | outside
+  if numbers is not values:
+    frame[name] = numbers
+  if not bad.any():
+    return None
+  row = int(np.argmax(bad))
+  if text[row]:
+    message = f"non-numeric value {original.iloc[row]!r}"
+  elif not np.isfinite(x[row]):
+    message = "empty, NaN or infinite value (truncated file?)"
+  else:
+    low, high, integer = bounds
+    kind = "a whole number in" if integer else "in"
+    interval = f"(0, {high}]" if name in _SIZE_COLUMNS else f"[{low:g}, {high:g}]"
+    message = f"value {x[row]:g} is not {kind} {interval}"
+  return row, message, int(bad.sum())
 
 
 def _locate_byte(path: Path) -> tuple:
@@ -157,20 +217,15 @@ def _locate_byte(path: Path) -> tuple:
   return data.count(b"\n", 0, start) + 1, header[field] if field < len(header) else None
 
 
-def _check_range(path: Path, name: str, values: np.ndarray, bounds) -> None:
-  """DataError at the first value outside `bounds` = (low, high, integer)."""
+def _outside(name: str, values: np.ndarray, bounds) -> np.ndarray:
+  """Finite `values` outside `bounds` = (low, high, integer) (a size: also <= 0)."""
   low, high, integer = bounds
   bad = (values > high) | (values < low) | (np.abs(values) > ABSURD)
   if name in _SIZE_COLUMNS:
     bad |= values <= 0
   if integer:
     bad |= values != np.round(values)
-  if bad.any():
-    row = int(np.argmax(bad))
-    kind = "a whole number in" if integer else "in"
-    interval = f"(0, {high}]" if name in _SIZE_COLUMNS else f"[{low:g}, {high:g}]"
-    raise DataError(path, f"value {values[row]:g} is not {kind} {interval}",
-                    row=row + 2, column=name)
+  return bad & np.isfinite(values)
 
 
 def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
@@ -242,15 +297,14 @@ class Recording:
 def read_recording(data_dir, recording_id: int) -> Recording:
   """Reads and validates recording `recording_id` of `data_dir`; raises DataError."""
   paths = recording_paths(data_dir, recording_id)
-  rec_meta = _read_table(paths["recordingMeta"], RECORDING_META_COLUMNS,
-                         RANGES["recordingMeta"])
+  rec_meta = _read_table(paths["recordingMeta"], "recordingMeta")
   if int(rec_meta["frameRate"].iloc[0]) != constants.FRAME_RATE_HZ:
     raise DataError(paths["recordingMeta"], f"frame rate {rec_meta['frameRate'].iloc[0]}, "
                     f"expected {constants.FRAME_RATE_HZ}", row=2, column="frameRate")
   for column in ("upperLaneMarkings", "lowerLaneMarkings"):
     _lane_markings(paths["recordingMeta"], rec_meta[column].iloc[0], column)
-  meta = _read_table(paths["tracksMeta"], TRACKS_META_COLUMNS, RANGES["tracksMeta"])
-  tracks = _read_table(paths["tracks"], TRACKS_COLUMNS, RANGES["tracks"])
+  meta = _read_table(paths["tracksMeta"], "tracksMeta")
+  tracks = _read_table(paths["tracks"], "tracks")
   meta_path, path = paths["tracksMeta"], paths["tracks"]
   bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
   if bad.any():
@@ -320,13 +374,9 @@ def read_recording(data_dir, recording_id: int) -> Recording:
 
 
 def available_recordings(data_dir) -> list[int]:
-  """Ids XX of the XX_tracks.csv files in `data_dir`, sorted."""
-  ids = []
-  for path in Path(data_dir).glob("*_tracks.csv"):
-    stem = path.name[: -len("_tracks.csv")]
-    if stem.isdigit():
-      ids.append(int(stem))
-  return sorted(ids)
+  """Ids of the recordings in `data_dir` (its *_tracks.csv files, see `recording_paths`),
+  sorted."""
+  return sorted(_tracks_files(data_dir))
 
 
 def load_scenarios(data_dir, recording_ids, config=None) -> scenarios_lib.Scenarios:

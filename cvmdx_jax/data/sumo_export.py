@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cvmdx_jax import atomic, constants
+from cvmdx_jax import constants
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import highd, sumo_network
 
 _KEY_SHIFT = 26  # bits of the centimetre position in the neighbour search key

@@ -21,7 +21,7 @@ import json
 
 import numpy as np
 
-from cvmdx_jax import atomic
+from cvmdx_jax.storage import atomic
 
 SPLITS = ("train", "val", "test", "test_ood")
 CAR_FOLLOWING = ("Krauss", "IDM")

@@ -16,6 +16,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.diffusion import param
 
 FORMS = ("paper", "official")
@@ -40,6 +41,7 @@ class GuidanceConfig:
   direction: str = "paper"
 
   def __post_init__(self):
+    check_ranges(self, {"w_min": NON_NEGATIVE, "w_max_base": NON_NEGATIVE, "t_c": POSITIVE})
     for name in ("form", "direction"):
       if getattr(self, name) not in FORMS:
         raise ValueError(f"guidance.{name} must be one of {FORMS}, got {getattr(self, name)!r}")

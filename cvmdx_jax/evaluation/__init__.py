@@ -6,5 +6,5 @@
   figures    paper Fig. 1 (predictions) and Fig. 3 (KL vs codebook usage) style PNGs
   report     `run`: one evaluation of trained runs -> metrics.json, results.md, figures
 
-The point metrics themselves (`ade`, `fde`, ...) stay in `cvmdx_jax.metrics`.
+The point metrics themselves (`ade`, `fde`, ...) are in `evaluation.metrics`.
 """

@@ -1,4 +1,7 @@
-"""Figures: multimodal predictions (paper Fig. 1) and KL vs codebook usage (Fig. 3)."""
+"""Figures: multimodal predictions (paper Fig. 1) and KL vs codebook usage (Fig. 3), as PNG
+bytes (the report writes them with its other files as one group)."""
+
+import io
 
 import matplotlib
 
@@ -7,22 +10,33 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import optimize  # noqa: E402
 
-from cvmdx_jax import atomic, constants  # noqa: E402
+from cvmdx_jax import constants  # noqa: E402
 
 LANE_WIDTH_M = 3.5
 _COLOURS = ("tab:blue", "tab:orange", "tab:green")
 
 
-def plot_predictions(path, scenarios, output, indices) -> None:
+def _png(fig) -> bytes:
+  """`fig` rendered as PNG at 110 dpi; the figure is closed."""
+  buffer = io.BytesIO()
+  fig.tight_layout()
+  fig.savefig(buffer, format="png", dpi=110)
+  plt.close(fig)
+  return buffer.getvalue()
+
+
+def plot_predictions(scenarios, output, indices) -> bytes:
   """One panel per scenario: lane lines (3.5 m lanes, ego lane centred at y = 0 at
   t0), observed ego and neighbours, samples coloured by hypothesis, hypothesis means
   with p(c), the mean trajectory and the ground truth.
 
   Args:
-    path: PNG file.
     scenarios: `Scenarios`.
     output: `PredictorOutput` for the same scenarios.
     indices: scenario indices to draw.
+
+  Returns:
+    The PNG file's bytes.
   """
   indices = list(indices)
   cols = min(3, len(indices))
@@ -57,9 +71,7 @@ def plot_predictions(path, scenarios, output, indices) -> None:
     ax.legend(fontsize=6, loc="upper left")
   for ax in axes.flat[len(indices):]:
     ax.axis("off")
-  fig.tight_layout()
-  atomic.save_figure(path, fig, dpi=110)
-  plt.close(fig)
+  return _png(fig)
 
 
 def power_law_fit(usage, kl):
@@ -74,8 +86,9 @@ def power_law_fit(usage, kl):
   return tuple(float(p) for p in params)
 
 
-def plot_kl_vs_usage(path, token_kl, title: str = "") -> tuple | None:
-  """KL(p_q || p_theta,q) against N_q (log x) with the power-law fit; returns the fit."""
+def plot_kl_vs_usage(token_kl, title: str = "") -> tuple[bytes, tuple | None]:
+  """KL(p_q || p_theta,q) against N_q (log x) with the power-law fit; returns (PNG bytes,
+  the fit (a, b, c) or None)."""
   fit = power_law_fit(token_kl.usage, token_kl.kl)
   fig, ax = plt.subplots(figsize=(5, 3.5))
   ax.scatter(token_kl.usage, token_kl.kl, s=14, label="codebook entries")
@@ -88,7 +101,4 @@ def plot_kl_vs_usage(path, token_kl, title: str = "") -> tuple | None:
   ax.set_ylabel("KL(p_q || p_theta,q) [nats]")
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7)
-  fig.tight_layout()
-  atomic.save_figure(path, fig, dpi=110)
-  plt.close(fig)
-  return fit
+  return _png(fig), fit

@@ -4,10 +4,13 @@ Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}
 methods `scoring.METHODS` (and, given a trained baseline, `learned_baseline.METHODS`),
 subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
-`predictions_<class><suffix>.png` (Fig. 1 style) and `kl_vs_usage<suffix>.png` (Fig. 3
-style). Every input is checked before anything is written, non-finite predictions stop
-the run (`scoring.NonFinitePredictionError`) before anything is written, and each file
-is written atomically.
+`predictions_<class><suffix>.png` (Fig. 1 style, for the classes present) and
+`kl_vs_usage<suffix>.png` (Fig. 3 style). Every input is checked before anything is
+written, non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before
+anything is written, and the report is written as a whole or not at all: every file is
+rendered in memory, then written as one group (`checksums.write_all`), so a failure (a
+full disk) leaves the previous report of this suffix, or none, and no temporary; a
+class figure of the previous report that this one lacks is removed.
 """
 
 import dataclasses
@@ -16,15 +19,31 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import atomic, checksums, constants, locking, tokens as tokens_lib
+from cvmdx_jax import constants
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.storage import atomic, checksums, locking
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, learned_baseline, scoring
 from cvmdx_jax.multimodal import HypothesisConfig
-from cvmdx_jax.predict import Predictor
+from cvmdx_jax.inference.predictor import Predictor
 
 
 @locking.holds("workdir")
+def _sampling_meta(predictor: Predictor) -> dict:
+  """The sampling settings of a report with the denoiser's control scale, conditioning and
+  residual base among them (where metrics.json has always listed them)."""
+  targets = predictor.denoiser.config.diffusion
+  out = {}
+  for name, value in dataclasses.asdict(predictor.sampling).items():
+    out[name] = value
+    if name == "clip_x0":
+      out.update(control_scale=targets.control_scale, conditioning=targets.conditioning,
+                 residual_decay_s=targets.residual_decay_s)
+  return out
+
+
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
         figures_per_class: int = 3, sampling_overrides=None, suffix: str = "",
@@ -61,7 +80,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   workdir = Path(workdir)
-  baseline = None if baseline_dir is None else learned_baseline.load(baseline_dir)
+  baseline = None if baseline_dir is None else loaders.load_baseline(baseline_dir)
   if baseline is not None:
     learned_baseline.check_tokenizer(baseline, predictor.tokenizer, str(baseline_dir))
 
@@ -92,15 +111,19 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   q_count = predictor.tokenizer.config.quantizer.codebook_size
   usage = np.bincount(usage_tokens.q, minlength=q_count)
   token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
-  fit = figures.plot_kl_vs_usage(workdir / f"kl_vs_usage{suffix}.png", token_kl,
-                                 f"Q = {q_count}, split {split}")
+  kl_png, fit = figures.plot_kl_vs_usage(token_kl, f"Q = {q_count}, split {split}")
+  pngs = {workdir / f"kl_vs_usage{suffix}.png": kl_png}
+  stale = []
   for c, name in enumerate(constants.CLASS_NAMES):
     idx = np.flatnonzero(scenarios.label == c)[:figures_per_class]
+    path = workdir / f"predictions_{name}{suffix}.png"
     if len(idx):
-      figures.plot_predictions(workdir / f"predictions_{name}{suffix}.png", scenarios, out, idx)
+      pngs[path] = figures.plot_predictions(scenarios, out, idx)
+    else:
+      stale.append(path)
 
   meta = {"split": split, "num_scenarios": len(scenarios), "seed": seed,
-          "sampling": dataclasses.asdict(predictor.sampling),
+          "sampling": _sampling_meta(predictor),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "baseline": None if baseline is None else {"dir": str(baseline_dir),
@@ -111,8 +134,11 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
               "delta_limit": predictor.delta_limit,
               "count": int(out.out_of_distribution.sum()),
               "share": float(out.out_of_distribution.mean())}}
-  checksums.write_json(workdir / f"metrics{suffix}.json", {**results, "_meta": meta})
-  atomic.write_text(workdir / f"results{suffix}.md", scoring.markdown_tables(results))
+  checksums.write_all({  # metrics.json first: renamed last
+      workdir / f"metrics{suffix}.json": atomic.json_text({**results, "_meta": meta}).encode(),
+      workdir / f"results{suffix}.md": scoring.markdown_tables(results).encode(), **pngs})
+  for path in stale:
+    path.unlink(missing_ok=True)
   return results
 
 

@@ -23,7 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from cvmdx_jax import constants, metrics
+from cvmdx_jax import constants
+from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
 
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")

@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from cvmdx_jax import constants, ego_motion, normalization, vmm
+from cvmdx_jax import constants, ego_motion, targets, vmm
+from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.models import functional
 
 OUTPUT_INIT_SCALE = 1e-2  # variance scale of the control heads' init: heads start near
@@ -33,7 +34,8 @@ class MultipleChoiceConfig:
   """Static sizes of the multiple-choice MLP.
 
   Attributes:
-    num_tokens: Q, the codebook size of the tokeniser whose tokens it reads.
+    num_tokens: Q, the codebook size of the tokeniser whose tokens it reads (0 in a
+      run config until the trainer sets it from the tokens, `BaselineConfig.with_tokens`).
     num_hypotheses: K heads (= C_max of cVMDx's hypotheses).
     token_dim: width of the token embedding.
     hidden: widths of the hidden layers (GELU).
@@ -49,13 +51,12 @@ class MultipleChoiceConfig:
   residual_decay_s: tuple[float, float] = (3.0, 0.1)
 
   def __post_init__(self):
-    if min(self.num_tokens, self.num_hypotheses, self.token_dim, *self.hidden) <= 0:
-      raise ValueError(f"MultipleChoiceConfig: num_tokens, num_hypotheses, token_dim and "
-                       f"hidden must be positive, got {self}")
+    check_ranges(self, {"num_tokens": NON_NEGATIVE, **dict.fromkeys(
+        ("num_hypotheses", "token_dim", "hidden", "control_scale", "residual_decay_s"),
+        POSITIVE)})
     if len(self.control_scale) != 2 or len(self.residual_decay_s) != 2:
-      raise ValueError("MultipleChoiceConfig: control_scale and residual_decay_s need two "
-                       f"values (a_x, yaw rate), got {self.control_scale}, "
-                       f"{self.residual_decay_s}")
+      raise ValueError("control_scale and residual_decay_s need two values (a_x, yaw "
+                       f"rate), got {self.control_scale}, {self.residual_decay_s}")
 
   @property
   def input_dim(self) -> int:
@@ -113,7 +114,7 @@ def rollout(config: MultipleChoiceConfig, controls, ego, v0, psi0):
     (B, K, 125, 2) positions after t0, m.
   """
   base = ego_motion.residual_controls(ego, config.residual_decay_s)[:, None]
-  physical = base + normalization.denormalize_controls(controls, config.control_scale)
+  physical = base + targets.denormalize_controls(controls, config.control_scale)
   return vmm.rollout(physical, v0[:, None], psi0[:, None])
 
 

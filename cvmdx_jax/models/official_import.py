@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import torch_zip
+from cvmdx_jax.models import torch_zip
 from cvmdx_jax.models import unet1d
 
 OFFICIAL_NUM_HEADS = 4
@@ -40,10 +40,15 @@ class OfficialCheckpointError(ValueError):
   """A checkpoint that is not a state dict of the official cVMDx U-Net."""
 
 
+class NumHeadsError(OfficialCheckpointError):
+  """A number of attention heads that does not divide the attention blocks' channels."""
+
+
 def _is_state_dict(obj) -> bool:
   return (isinstance(obj, dict) and bool(obj)
           and all(isinstance(v, np.ndarray) for v in obj.values())
-          and any(k.removeprefix("module.") in _CANDIDATE_KEYS for k in obj))
+          and any(isinstance(k, str) and k.removeprefix("module.") in _CANDIDATE_KEYS
+                  for k in obj))
 
 
 def unwrap_state_dict(obj, where: str, key: str | None = None) -> dict[str, np.ndarray]:
@@ -55,12 +60,14 @@ def unwrap_state_dict(obj, where: str, key: str | None = None) -> dict[str, np.n
   (DataParallel) is removed.
 
   Raises:
-    OfficialCheckpointError: no state dict found, or an ambiguous one without `key`.
+    OfficialCheckpointError: no state dict found, an ambiguous one without `key`, a
+      key that is not a string, or a parameter holding NaN or Inf (after the
+      conversion to float32).
   """
   if key is not None:
     if not isinstance(obj, dict) or key not in obj:
-      found = sorted(obj) if isinstance(obj, dict) else type(obj).__name__
-      raise OfficialCheckpointError(f"{where}: no entry {key!r} (found {found})")
+      found = sorted(map(str, obj)) if isinstance(obj, dict) else type(obj).__name__
+      raise OfficialCheckpointError(f"{where}: no entry {key!r} (found {found[:8]})")
     obj = obj[key]
   if not _is_state_dict(obj):
     if not isinstance(obj, dict):
@@ -69,35 +76,71 @@ def unwrap_state_dict(obj, where: str, key: str | None = None) -> dict[str, np.n
     if len(nested) != 1:
       raise OfficialCheckpointError(
           f"{where}: expected a U-Net state dict (with {_CANDIDATE_KEYS[0]!r}) or a dict "
-          f"holding exactly one; found entries {sorted(map(str, obj))}"
+          f"holding exactly one; found entries {sorted(map(str, obj))[:8]}"
           + (f", of which {nested} are state dicts: choose one with key=" if nested else ""))
     obj = obj[nested[0]]
+  names = [k for k in obj if not isinstance(k, str)]
+  if names:
+    raise OfficialCheckpointError(f"{where}: the state dict has a key {names[0]!r} of type "
+                                  f"{type(names[0]).__name__}; parameter names are strings")
   if all(k.startswith("module.") for k in obj):
     obj = {k.removeprefix("module."): v for k, v in obj.items()}
-  return {k: np.asarray(v, np.float32) for k, v in obj.items()}
+  state = {k: np.asarray(v, np.float32) for k, v in obj.items()}
+  bad = [k for k, v in state.items() if not np.isfinite(v).all()]
+  if bad:
+    raise OfficialCheckpointError(f"{where}: parameter {bad[0]} holds NaN or Inf values"
+                                  + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+  return state
+
+
+def _shape(state, name: str, ndim: int, where: str) -> tuple[int, ...]:
+  """The shape of parameter `name`, checked to have `ndim` non-zero dimensions."""
+  shape = state[name].shape
+  if len(shape) != ndim or 0 in shape:
+    raise OfficialCheckpointError(f"{where}: parameter {name} has shape {shape}; expected "
+                                  f"{ndim} non-zero dimensions")
+  return shape
 
 
 def _block_indices(state, prefix: str) -> list[int]:
-  return sorted({int(k.split(".")[1]) for k in state if k.startswith(prefix + ".")})
+  indices = set()
+  for k in state:
+    part = k[len(prefix) + 1:].split(".")[0] if k.startswith(prefix + ".") else None
+    if part is not None and not part.isdigit():
+      raise OfficialCheckpointError(f"parameter {k}: {part!r} is not a block index")
+    if part is not None:
+      indices.add(int(part))
+  return sorted(indices)
 
 
 def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEADS,
                 where: str = "state dict") -> unet1d.UNetConfig:
   """The `UNetConfig` of an official state dict: Q from the label embedding, widths,
-  levels, residual blocks per level and attention levels from the layer shapes."""
+  levels, residual blocks per level and attention levels from the layer shapes.
+
+  Raises:
+    OfficialCheckpointError: a parameter missing or of a shape no official U-Net has.
+    NumHeadsError: `num_heads` does not divide the attention blocks' channels.
+  """
   missing = [k for k in _CANDIDATE_KEYS + ("out.2.weight",) if k not in state]
   if missing:
     raise OfficialCheckpointError(f"{where}: not an official U-Net state dict; missing {missing}")
-  ch, in_ch, _ = state["input_blocks.0.0.weight"].shape
-  emb = state["time_embed.0.weight"].shape[0]
-  out_ch = state["out.2.weight"].shape[0]
+  ch, in_ch, _ = _shape(state, "input_blocks.0.0.weight", 3, where)
+  emb, _ = _shape(state, "time_embed.0.weight", 2, where)
+  out_ch, _, _ = _shape(state, "out.2.weight", 3, where)
+  rows, _ = _shape(state, "label_emb.weight", 2, where)
   if in_ch != 2 or out_ch != 2:
     raise OfficialCheckpointError(
         f"{where}: the U-Net maps {in_ch} -> {out_ch} channels; expected 2 -> 2 "
         "(learn_sigma=False, controls [a_x, yaw rate])")
-  if emb % ch:
-    raise OfficialCheckpointError(f"{where}: embedding width {emb} is not a multiple of {ch}")
-  inputs = _block_indices(state, "input_blocks")
+  if emb % ch or ch % OFFICIAL_GROUPS or rows < 2:
+    raise OfficialCheckpointError(
+        f"{where}: {ch} base channels, embedding width {emb}, {rows} label rows; expected a "
+        f"multiple of {OFFICIAL_GROUPS}, a multiple of it, and Q + 1 >= 2")
+  try:
+    inputs = _block_indices(state, "input_blocks")
+  except OfficialCheckpointError as e:
+    raise OfficialCheckpointError(f"{where}: {e}") from None
   downs = [i for i in inputs if f"input_blocks.{i}.0.op.weight" in state]
   levels = len(downs) + 1
   per_level, rem = divmod(len(inputs) - 1 - len(downs), levels)
@@ -106,60 +149,100 @@ def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEAD
                                   "downsamplings do not form a U-Net of equal levels")
   mults, attention, i = [], [], 1
   for level in range(levels):
-    out_w = state.get(f"input_blocks.{i}.0.out_layers.3.weight")
-    film = state.get(f"input_blocks.{i}.0.emb_layers.1.weight")
-    if out_w is None or film is None or out_w.shape[0] % ch:
+    out_name = f"input_blocks.{i}.0.out_layers.3.weight"
+    film_name = f"input_blocks.{i}.0.emb_layers.1.weight"
+    if out_name not in state or film_name not in state:
       raise OfficialCheckpointError(f"{where}: input_blocks.{i} is not a residual block")
-    if film.shape[0] != 2 * out_w.shape[0]:
+    width = _shape(state, out_name, 3, where)[0]
+    if width % ch:
+      raise OfficialCheckpointError(f"{where}: parameter {out_name} has {width} output "
+                                    f"channels, not a multiple of the {ch} base channels")
+    if _shape(state, film_name, 2, where)[0] != 2 * width:
       raise OfficialCheckpointError(f"{where}: input_blocks.{i} has no scale-shift FiLM "
                                     "(use_scale_shift_norm=True is required)")
-    mults.append(out_w.shape[0] // ch)
+    mults.append(width // ch)
     if f"input_blocks.{i}.1.qkv.weight" in state:
       attention.append(level)
     i += per_level + (level < levels - 1)
-  return unet1d.UNetConfig(num_tokens=state["label_emb.weight"].shape[0] - 1,
-                           base_channels=ch, channel_mult=tuple(mults),
-                           num_res_blocks=per_level, emb_mult=emb // ch,
-                           attention_levels=tuple(attention), num_heads=num_heads,
-                           groups=OFFICIAL_GROUPS, dropout=0.0)
+  widths = sorted({ch * mults[level] for level in attention} | {ch * mults[-1]})
+  if any(c % num_heads for c in widths):
+    raise NumHeadsError(f"{where}: the attention blocks have {widths} channels, not all "
+                        f"divisible by {num_heads} heads")
+  try:
+    return unet1d.UNetConfig(num_tokens=rows - 1, base_channels=ch, channel_mult=tuple(mults),
+                             num_res_blocks=per_level, emb_mult=emb // ch,
+                             attention_levels=tuple(attention), num_heads=num_heads,
+                             groups=OFFICIAL_GROUPS, dropout=0.0)
+  except ValueError as e:  # e.g. more levels than the padded length allows
+    raise OfficialCheckpointError(f"{where}: {e}") from None
 
 
-def _conv(w, b):
-  return {"kernel": np.transpose(w, (2, 1, 0)), "bias": b}
+_REVERSED = lambda shape: tuple(shape)[::-1]  # our conv / linear kernel -> torch weight
+_SAME = tuple
 
 
-def _attention(state, p: str, heads: int) -> dict[str, np.ndarray]:
-  w, b = state[f"{p}.qkv.weight"][:, :, 0], state[f"{p}.qkv.bias"]
+def _attention(state, p: str, heads: int, get) -> dict[str, tuple]:
+  """{our name: (official name, our shape -> torch shape, array)} of one attention block."""
+  w, b = get(f"{p}.qkv.weight", 3), get(f"{p}.qkv.bias", 1)
+  proj, proj_b = get(f"{p}.proj_out.weight", 3), get(f"{p}.proj_out.bias", 1)
+  scale, bias = get(f"{p}.norm.weight", 1), get(f"{p}.norm.bias", 1)
   c = w.shape[1]
+  want = {f"{p}.qkv.weight": (3 * c, c, 1), f"{p}.qkv.bias": (3 * c,),
+          f"{p}.proj_out.weight": (c, c, 1), f"{p}.proj_out.bias": (c,),
+          f"{p}.norm.weight": (c,), f"{p}.norm.bias": (c,)}
+  for name, shape in want.items():
+    if state[name].shape != shape:
+      raise OfficialCheckpointError(f"parameter {name} has shape {state[name].shape}; an "
+                                    f"attention block of {c} channels has {shape}")
+  if c % heads:
+    raise OfficialCheckpointError(f"{p} has {c} channels, not divisible by {heads} heads")
   d = c // heads
-  w = w.reshape(heads, 3, d, c)  # (head, q/k/v, head dim, in)
+  w = w[:, :, 0].reshape(heads, 3, d, c)  # (head, q/k/v, head dim, in)
   b = b.reshape(heads, 3, d)
-  out = {f"norm.{n}": state[f"{p}.norm.{m}"] for n, m in (("scale", "weight"), ("bias", "bias"))}
+  qkv_w = lambda shape: (3 * shape[1] * shape[2], shape[0], 1)  # (in, head, d) -> torch
+  qkv_b = lambda shape: (3 * shape[0] * shape[1],)
+  out = {"norm.scale": (f"{p}.norm.weight", _SAME, scale),
+         "norm.bias": (f"{p}.norm.bias", _SAME, bias)}
   for s, name in enumerate(("query", "key", "value")):
-    out[f"attn.{name}.kernel"] = np.transpose(w[:, s], (2, 0, 1))  # (in, head, head dim)
-    out[f"attn.{name}.bias"] = b[:, s]
-  proj = state[f"{p}.proj_out.weight"][:, :, 0]  # (out, head * head dim)
-  out["attn.out.kernel"] = np.transpose(proj.reshape(proj.shape[0], heads, d), (1, 2, 0))
-  out["attn.out.bias"] = state[f"{p}.proj_out.bias"]
+    out[f"attn.{name}.kernel"] = (f"{p}.qkv.weight", qkv_w,
+                                  np.transpose(w[:, s], (2, 0, 1)))  # (in, head, head dim)
+    out[f"attn.{name}.bias"] = (f"{p}.qkv.bias", qkv_b, b[:, s])
+  out["attn.out.kernel"] = (f"{p}.proj_out.weight",
+                            lambda shape: (shape[2], shape[0] * shape[1], 1),
+                            np.transpose(proj[:, :, 0].reshape(c, heads, d), (1, 2, 0)))
+  out["attn.out.bias"] = (f"{p}.proj_out.bias", _SAME, proj_b)
   return out
 
 
-def _converted(state, cfg: unet1d.UNetConfig) -> tuple[dict[str, np.ndarray], set[str]]:
-  """{our parameter path: array} and the official names used."""
+def _converted(state, cfg: unet1d.UNetConfig) -> tuple[dict[str, tuple], set[str]]:
+  """{our parameter path: (official name, our shape -> torch shape, array)} and the
+  official names used; each official parameter checked to have the dimensions its
+  layer needs before its layout is changed."""
   out, used = {}, set()
 
-  def get(name):
+  def get(name, ndim):
     used.add(name)
     if name not in state:
       raise OfficialCheckpointError(f"official parameter {name} missing from the state dict")
+    if state[name].ndim != ndim:
+      raise OfficialCheckpointError(f"parameter {name} has shape {state[name].shape}; its "
+                                    f"layer needs {ndim} dimensions")
     return state[name]
 
   def put(ours, arrays):
     out.update({f"{ours}.{k}": v for k, v in arrays.items()})
 
-  conv = lambda p: _conv(get(f"{p}.weight"), get(f"{p}.bias"))
-  linear = lambda p: {"kernel": get(f"{p}.weight").T, "bias": get(f"{p}.bias")}
-  norm = lambda p: {"scale": get(f"{p}.weight"), "bias": get(f"{p}.bias")}
+  def conv(p):
+    return {"kernel": (f"{p}.weight", _REVERSED, np.transpose(get(f"{p}.weight", 3), (2, 1, 0))),
+            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
+
+  def linear(p):
+    return {"kernel": (f"{p}.weight", _REVERSED, get(f"{p}.weight", 2).T),
+            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
+
+  def norm(p):
+    return {"scale": (f"{p}.weight", _SAME, get(f"{p}.weight", 1)),
+            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
 
   def res(p, ours):
     put(f"{ours}.norm1", norm(f"{p}.in_layers.0"))
@@ -171,14 +254,11 @@ def _converted(state, cfg: unet1d.UNetConfig) -> tuple[dict[str, np.ndarray], se
       put(f"{ours}.skip", conv(f"{p}.skip_connection"))
 
   def attn(p, ours):
-    for n in ("norm.weight", "norm.bias", "qkv.weight", "qkv.bias", "proj_out.weight",
-              "proj_out.bias"):
-      get(f"{p}.{n}")
-    put(ours, _attention(state, p, cfg.num_heads))
+    put(ours, _attention(state, p, cfg.num_heads, get))
 
   put("time_mlp1", linear("time_embed.0"))
   put("time_mlp2", linear("time_embed.2"))
-  out["token_embed.embedding"] = get("label_emb.weight")
+  out["token_embed.embedding"] = ("label_emb.weight", _SAME, get("label_emb.weight", 2))
   put("conv_in", conv("input_blocks.0.0"))
   levels, i, d = len(cfg.channel_mult), 1, 0
   for level in range(levels):
@@ -217,10 +297,12 @@ def _path_name(path) -> str:
 
 def params_from_state_dict(state: dict[str, np.ndarray], cfg: unet1d.UNetConfig,
                            where: str = "state dict"):
-  """The U-Net parameters (the pytree of `unet1d.init_unet(cfg, key)[1]`).
+  """The U-Net parameters (the pytree of `unet1d.init_unet(cfg, key)[1]`); every
+  shape is compared with the architecture's (`jax.eval_shape`) before any is built.
 
   Raises:
-    OfficialCheckpointError: a parameter missing, left over, or of another shape.
+    OfficialCheckpointError: a parameter missing, left over, or of another shape; the
+      message names the file and the official parameter.
   """
   abstract = jax.eval_shape(lambda: unet1d.init_unet(cfg, jax.random.key(0))[1])
   try:
@@ -230,27 +312,30 @@ def params_from_state_dict(state: dict[str, np.ndarray], cfg: unet1d.UNetConfig,
   unused = sorted(set(state) - used)
   if unused:
     raise OfficialCheckpointError(f"{where}: parameters not part of the U-Net: {unused[:8]}")
-  problems = []
-
-  def fill(path, leaf):
-    name = _path_name(path)
-    value = arrays.pop(name, None)
-    if value is None or value.shape != leaf.shape:
-      problems.append(f"{name}: expected {leaf.shape}, got "
-                      f"{None if value is None else value.shape}")
-      return jnp.zeros(leaf.shape, leaf.dtype)
-    return jnp.asarray(value, leaf.dtype)
-
-  params = jax.tree_util.tree_map_with_path(fill, abstract)
-  problems += [f"{name}: no such parameter in the U-Net" for name in sorted(arrays)]
+  leaves = {_path_name(path): leaf
+            for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]}
+  problems = [f"{name}: no such parameter in the U-Net"
+              for name in sorted(set(arrays) - set(leaves))]
+  problems += [f"{name}: no official parameter maps to it"
+               for name in sorted(set(leaves) - set(arrays))]
+  for name, (official, to_torch, value) in arrays.items():
+    if name in leaves and value.shape != leaves[name].shape:
+      problems.append(f"parameter {official} has shape {state[official].shape}; the "
+                      f"architecture read from the file expects {to_torch(leaves[name].shape)}")
   if problems:
     raise OfficialCheckpointError(f"{where}: does not match the official U-Net layout: "
-                                  + "; ".join(problems[:8]))
-  return params
+                                  + "; ".join(problems[:4]))
+  return jax.tree_util.tree_map_with_path(
+      lambda path, leaf: jnp.asarray(arrays[_path_name(path)][2], leaf.dtype), abstract)
 
 
 def load_official(path, *, key: str | None = None, num_heads: int = OFFICIAL_NUM_HEADS):
-  """(UNetConfig, params) of an official `.pt` checkpoint (read without torch)."""
+  """(UNetConfig, params) of an official `.pt` checkpoint (read without torch).
+
+  Raises:
+    TorchFileError, OfficialCheckpointError: the file is refused (its name in the message).
+    NumHeadsError: `num_heads` does not divide the attention blocks' channels.
+  """
   state = unwrap_state_dict(torch_zip.read_pt(path), str(path), key)
   cfg = unet_config(state, num_heads, str(path))
   return cfg, params_from_state_dict(state, cfg, str(path))

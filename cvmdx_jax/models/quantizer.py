@@ -27,6 +27,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
+
 QUANTIZERS = ("vq", "cvq")
 _EPS = 1e-3  # the eps of alpha_k: keeps alpha_k < 1
 
@@ -54,9 +56,9 @@ class QuantizerConfig:
   def __post_init__(self):
     if self.kind not in QUANTIZERS:
       raise ValueError(f"quantizer kind '{self.kind}' is not one of {QUANTIZERS}")
-    if self.codebook_size < 1 or self.latent_dim < 1:
-      raise ValueError(f"codebook_size ({self.codebook_size}) and latent_dim "
-                       f"({self.latent_dim}) must be positive")
+    check_ranges(self, {"codebook_size": POSITIVE, "latent_dim": POSITIVE,
+                        "beta": NON_NEGATIVE, "usage_decay": FRACTION,
+                        "revive_strength": NON_NEGATIVE})
 
 
 class Quantized(NamedTuple):

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants
+from cvmdx_jax.config_dataclass import POSITIVE, check_ranges
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +32,9 @@ class EncoderConfig:
   latent_dim: int = 16
   channels: tuple[int, ...] = (64, 128, 128)
   kernel_size: int = 5
+
+  def __post_init__(self):
+    check_ranges(self, {"latent_dim": POSITIVE, "channels": POSITIVE, "kernel_size": POSITIVE})
 
   def bottleneck_steps(self) -> int:
     """Steps left after the stride-2 levels (75 -> 10 for three levels)."""

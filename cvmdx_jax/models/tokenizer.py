@@ -20,6 +20,7 @@ import optax
 from flax import nnx
 
 from cvmdx_jax import constants
+from cvmdx_jax.config_dataclass import NON_NEGATIVE, check_ranges
 from cvmdx_jax.models import functional, scenario_norm
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models.scenario_encoder import (EncoderConfig, ScenarioDecoder,
@@ -44,6 +45,7 @@ class TokenizerConfig:
   ego_weight: float = 1.0
 
   def __post_init__(self):
+    check_ranges(self, {"cls_weight": NON_NEGATIVE, "ego_weight": NON_NEGATIVE})
     if self.encoder.latent_dim != self.quantizer.latent_dim:
       raise ValueError(f"encoder latent_dim {self.encoder.latent_dim} != quantizer "
                        f"latent_dim {self.quantizer.latent_dim}")

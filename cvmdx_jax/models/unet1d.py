@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants
+from cvmdx_jax.config_dataclass import BELOW_ONE, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.models import functional
 from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, Upsample, group_norm,
                                      timestep_embedding)
@@ -65,6 +66,9 @@ class UNetConfig:
   cond_dim: int = 0
 
   def __post_init__(self):
+    check_ranges(self, {**dict.fromkeys(("base_channels", "channel_mult", "num_res_blocks",
+                                         "emb_mult", "num_heads", "groups"), POSITIVE),
+                        "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE})
     factor = 2 ** (len(self.channel_mult) - 1)
     if self.padded_length % factor or self.padded_length < self.length:
       raise ValueError(f"padded_length={self.padded_length} must be >= length={self.length} "

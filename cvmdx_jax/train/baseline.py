@@ -13,32 +13,31 @@ of the epoch with the lowest val `train.select_metric` (default minADE_K: the
 cross-entropy part of the loss is measured against winners that move as the heads move,
 and on the demo data it made the val loss pick an early, worse epoch; BUILD_NOTES.md), so
 the choice is checkpointed, resumed and bit-identical like the rest of the state.
-`metrics.jsonl` holds the val curve (`val_*` per epoch).
+`metrics.jsonl` holds the val curve (`val_*` per epoch); the run directory is laid out
+in `runs.layout` and loaded with `runs.loaders.load_baseline`.
 
 Train state: {"params", "opt_state", "step", "val" (the last val read-outs), "best"
 {"params", "val_score", "epoch"}}.
 """
 
-import dataclasses
 import os
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import ego_motion, locking, metrics, sharding, tokens as tokens_lib
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax import ego_motion
 from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.evaluation import learned_baseline
+from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.models import multiple_choice as mc
+from cvmdx_jax.runs import fingerprints, layout
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.runs.config import BaselineConfig, BaselineTrainConfig
+from cvmdx_jax.storage import locking
 from cvmdx_jax.train import loop
 
 INPUTS = ("q", "delta", "ego", "v0", "psi0")  # what a forward pass reads
-# val read-outs of `evaluate` the epoch can be chosen on (lower is better)
-SELECT_METRICS = ("loss", "wta_ade", "min_ade", "min_fde", "ml_ade", "ml_fde", "mean_ade",
-                  "mean_fde")
 _EPS_M2 = 1e-6  # m^2 under the square root of a displacement (its gradient at 0)
 _ego_features = jax.jit(ego_motion.ego_features)  # one compiled call, not ~100 dispatches
 
@@ -92,14 +91,16 @@ def evaluate(graphdef, params, model_cfg, data, cls_weight: float) -> dict:
           "head_share": share}
 
 
-def optimizer(train: ml_collections.ConfigDict, total_steps: int):
-  warmup = min(train.warmup_steps, max(total_steps // 10, 1))
+def optimizer(t: BaselineTrainConfig, total_steps: int):
+  """AdamW with linear warm-up, cosine decay to `t.end_lr_fraction` of the peak and
+  global-norm clipping."""
+  warmup = min(t.warmup_steps, max(total_steps // 10, 1))
   lr = optax.warmup_cosine_decay_schedule(
-      init_value=train.learning_rate * 0.01, peak_value=train.learning_rate,
+      init_value=t.learning_rate * 0.01, peak_value=t.learning_rate,
       warmup_steps=warmup, decay_steps=max(total_steps, warmup + 1),
-      end_value=train.learning_rate * train.end_lr_fraction)
-  return optax.chain(optax.clip_by_global_norm(train.grad_clip),
-                     optax.adamw(lr, weight_decay=train.weight_decay))
+      end_value=t.learning_rate * t.end_lr_fraction)
+  return optax.chain(optax.clip_by_global_norm(t.grad_clip),
+                     optax.adamw(lr, weight_decay=t.weight_decay))
 
 
 def make_init_fn(model_cfg, tx, val_metrics):
@@ -120,8 +121,7 @@ def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
                  steps_per_epoch: int, select: str):
   """The pure train step of the shared loop: WTA loss, AdamW update and, at the last
   step of each epoch, the val evaluation (`evaluate`) and the choice of the epoch with
-  the lowest val `select` (one of `SELECT_METRICS`)."""
-  check_select(select)
+  the lowest val `select` (one of `runs.config.SELECT_METRICS`)."""
   val = jax.tree.map(jnp.asarray, val)
 
   def step_fn(state, batch, key):
@@ -151,15 +151,7 @@ def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
   return step_fn
 
 
-def check_select(select: str) -> str:
-  """Returns `select`; ValueError naming train.select_metric if it is not one of
-  `SELECT_METRICS`."""
-  if select not in SELECT_METRICS:
-    raise ValueError(f"train.select_metric must be one of {SELECT_METRICS}, got {select!r}")
-  return select
-
-
-def split_arrays(config, split: str) -> tuple[dict, dict]:
+def split_arrays(config: BaselineConfig, split: str) -> tuple[dict, dict]:
   """({q, delta, ego, v0, psi0, future} numpy arrays of `split`, its tokens' metadata)."""
   scenarios = dataset_lib.load_split(config.data_dir, split)
   toks, meta = tokens_lib.load_tokens(
@@ -172,47 +164,25 @@ def split_arrays(config, split: str) -> tuple[dict, dict]:
   return arrays, meta
 
 
-def model_config(config, num_tokens: int) -> mc.MultipleChoiceConfig:
-  """The `MultipleChoiceConfig` of a baseline config (`config.model`)."""
-  return to_dataclass(mc.MultipleChoiceConfig, config.model, num_tokens=num_tokens)
-
-
-def fingerprint(config, model_cfg: mc.MultipleChoiceConfig, dataset_id: str,
-                tokens_meta: dict) -> dict:
-  """What a baseline checkpoint belongs to: model, loss, optimiser, dataset, tokeniser."""
-  checkpoint = tokens_meta.get("checkpoint", {})
-  # num_epochs included: the cosine schedule spans the whole run, so more epochs are
-  # another run, not a continuation
-  train = {k: v for k, v in config.train.items() if k not in ("checkpoint_every", "keep")}
-  return {"model": dataclasses.asdict(model_cfg), "features": ego_motion.NUM_FEATURES,
-          "cls_weight": config.loss.cls_weight, "train": train, "dataset_id": dataset_id,
-          "tokenizer": {k: checkpoint.get(k) for k in ("fingerprint", "step", "params_sha256")}}
-
-
 @locking.holds("workdir")
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
+def train(config: BaselineConfig, workdir: str | os.PathLike):
   """Trains the baseline into `workdir` (resuming if possible); returns the final state.
 
-  `workdir` gets `baseline.json` and `config.json` (`learned_baseline`), `metrics.jsonl`
-  (train loss and the val curve per epoch) and `checkpoints/`.
+  `workdir` gets `config.json` (`config` with the tokens' Q), `metrics.jsonl` (train loss
+  and the val curve per epoch) and `checkpoints/` (`runs.layout`).
   """
   data, meta = split_arrays(config, "train")
   val, _ = split_arrays(config, "val")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
-  model_cfg = model_config(config, int(meta["codebook_size"]))
+  config = config.with_tokens(int(meta["codebook_size"]))
+  model_cfg = config.model
   steps_per_epoch = -(-len(data["q"]) // config.train.batch_size)
   tx = optimizer(config.train, steps_per_epoch * config.train.num_epochs)
   graphdef = mc.make_graphdef(model_cfg)
-  cls_weight = float(config.loss.cls_weight)
+  cls_weight = config.loss.cls_weight
   val_shapes = jax.eval_shape(lambda p: evaluate(graphdef, p, model_cfg, val, cls_weight),
                               jax.eval_shape(lambda k: mc.init(model_cfg, k)[1],
                                              jax.random.key(0)))
-  fp = fingerprint(config, model_cfg, dataset_id, meta)
-  learned_baseline.check_run_dir(workdir, fp)
-
-  def write_run_files():  # only once the checkpoint's fingerprint has been checked
-    if sharding.is_primary():
-      learned_baseline.write_run_dir(workdir, config, model_cfg, fp)
 
   def epoch_end_fn(state, epoch):
     del epoch
@@ -224,6 +194,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       step_fn=make_step_fn(graphdef, model_cfg, tx, cls_weight=cls_weight, val=val,
                            steps_per_epoch=steps_per_epoch, select=config.train.select_metric),
       data=data, batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
-      seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep, epoch_end_fn=epoch_end_fn, on_start=write_run_files,
+      seed=config.seed, fingerprint=fingerprints.baseline(config, dataset_id, meta),
+      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
+      epoch_end_fn=epoch_end_fn, on_start=lambda: layout.write_run_config(workdir, config),
       desc="baseline")

@@ -14,19 +14,22 @@ import os
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import ego_motion, locking, normalization, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import ego_motion, targets
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, v_loss
 from cvmdx_jax.models import unet1d
+from cvmdx_jax.runs import fingerprints, layout
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.runs.config import DiffusionConfig, DiffusionTrainConfig
+from cvmdx_jax.storage import locking
 from cvmdx_jax.train import loop
 
 
-def optimizer(config: ml_collections.ConfigDict, total_steps: int):
-  t = config.train
+def optimizer(t: DiffusionTrainConfig, total_steps: int):
+  """AdamW with linear warm-up, cosine decay to `t.min_lr` and global-norm clipping."""
   warmup = min(t.warmup_steps, max(total_steps // 10, 1))
   lr = optax.warmup_cosine_decay_schedule(
       init_value=t.learning_rate * 0.01, peak_value=t.learning_rate, warmup_steps=warmup,
@@ -74,56 +77,51 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
   return step_fn
 
 
-def training_data(config) -> tuple[dict, int, str, dict]:
+def training_data(config: DiffusionConfig) -> tuple[dict, int, str, dict]:
   """(arrays {x0, q[, ego][, class_weight]}, Q, dataset id, tokens metadata) of the
   training split; `class_weight` (M,) only where `diffusion.class_weights` is not all 1."""
-  class_weights = runs.class_weights(config)
+  d = config.diffusion
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
                                       dataset_id=dataset_id, num_scenarios=len(scenarios))
-  scale = tuple(config.diffusion.control_scale)
   data, controls = {"q": toks.q.astype(np.int32)}, scenarios.controls
-  if runs.conditioning(config) != "token":
+  if d.conditioning != "token":
     data["ego"] = np.asarray(ego_motion.ego_features(scenarios.xi, scenarios.mask))
-    if ego_motion.uses_residual(runs.conditioning(config)):
-      controls = controls - ego_motion.residual_controls(
-          data["ego"], tuple(config.diffusion.residual_decay_s))
-  data["x0"] = np.asarray(normalization.normalize_controls(controls, scale), np.float32)
-  if class_weights:
-    data["class_weight"] = np.asarray(class_weights, np.float32)[scenarios.label]
+    if ego_motion.uses_residual(d.conditioning):
+      controls = controls - ego_motion.residual_controls(data["ego"], d.residual_decay_s)
+  data["x0"] = np.asarray(targets.normalize_controls(controls, d.control_scale), np.float32)
+  if d.weighted_classes:
+    data["class_weight"] = np.asarray(d.class_weights, np.float32)[scenarios.label]
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 
-def init_and_step(config, cfg: unet1d.UNetConfig, total_steps: int):
-  """(graphdef, init_fn, step_fn) of a run with `total_steps` optimiser steps."""
+def init_and_step(config: DiffusionConfig, total_steps: int):
+  """(graphdef, init_fn, step_fn) of a run (`config.model` sized for its tokens) with
+  `total_steps` optimiser steps."""
+  cfg = config.model
   graphdef = unet1d.make_graphdef(cfg)
-  tx = optimizer(config, total_steps)
+  tx = optimizer(config.train, total_steps)
   step_fn = make_step_fn(graphdef, cfg, tx, cond_drop_prob=config.diffusion.cond_drop_prob,
                          ema_decay=config.train.ema_decay, num_steps=config.diffusion.num_steps)
   return graphdef, make_init_fn(cfg, tx), step_fn
 
 
 @locking.holds("workdir")
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike):
+def train(config: DiffusionConfig, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
-  `workdir` gets `config.json` (the run's config), `model.json` (the U-Net config),
-  `metrics.jsonl` and `checkpoints/` (`cvmdx_jax.runs` reads them for inference).
+  `workdir` gets `config.json` (`config` with the tokens' Q), `metrics.jsonl` and
+  `checkpoints/` (`runs.loaders.load_denoiser` reads them for inference).
   """
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
-  cfg = runs.unet_config(config, num_tokens)
+  config = config.with_tokens(num_tokens)
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
-  _, init_fn, step_fn = init_and_step(config, cfg, total_steps)
-
-  def write_run_files():  # only once the checkpoint's fingerprint has been checked
-    if sharding.is_primary():
-      runs.write_diffusion_dir(workdir, config, cfg)
-
+  _, init_fn, step_fn = init_and_step(config, total_steps)
   return loop.train(
       workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
-      fingerprint=runs.diffusion_fingerprint(config, cfg, dataset_id, tokens_meta),
+      fingerprint=fingerprints.diffusion(config, dataset_id, tokens_meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      on_start=write_run_files, desc="diffusion")
+      on_start=lambda: layout.write_run_config(workdir, config), desc="diffusion")
 

@@ -11,7 +11,8 @@ same command ends bit-identical to one that never stopped.
 Epochs are counted from 1 in the metrics lines, in `epoch_end_fn` and as checkpoint
 steps: checkpoint `k` holds the state after k complete epochs.
 
-The workdir is held (`locking.hold`) for the whole run, so a second run on it is refused.
+The caller holds the workdir (`storage.locking.hold`, taken once by the trainers around
+everything they write), so a second run on it is refused; `train` checks that it is held.
 Under `jax.distributed` (see `sharding.initialize_distributed`) every process runs `train`
 with the same arguments and data: the mesh spans all processes' devices, each process feeds
 the rows of every global batch that its devices hold, orbax writes one checkpoint together,
@@ -29,8 +30,10 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from cvmdx_jax import atomic, checkpointing, locking, runs, sharding
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax import sharding
+from cvmdx_jax.runs import layout
+from cvmdx_jax.storage import atomic, checkpointing, identity, locking
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 
 State = Any
 Batch = dict[str, jax.Array]
@@ -109,7 +112,6 @@ def _to_json_value(value: Any) -> Any:
   return np.asarray(jax.device_get(value)).tolist()
 
 
-@locking.holds("workdir")
 def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], step_fn: StepFn,
           data: Mapping[str, np.ndarray], batch_size: int, num_epochs: int, seed: int,
           fingerprint: Any, checkpoint_every: int = 1, keep: int = 2,
@@ -118,7 +120,8 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
   """Trains (or resumes, or returns a finished run's final state) data-parallel.
 
   Args:
-    workdir: run directory; holds `checkpoints/` and `metrics.jsonl`.
+    workdir: run directory; holds `checkpoints/` and `metrics.jsonl`; the caller holds
+      its lock (`storage.locking.hold`).
     init_fn: `init_fn(key) -> state`, a pytree of arrays (no PRNG keys).
     step_fn: pure `step_fn(state, batch, key) -> (state, metrics)`; `batch` holds the
       arrays of `data` for `batch_size` examples plus `weight` (batch_size,) float32 (0 on
@@ -142,18 +145,21 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
     `sharding.local_copy` of it, so that single-process code can go on with it).
 
   Raises:
-    ValueError: bad arguments (e.g. batch_size not divisible by the device count).
-    locking.WorkdirLockedError: another process holds the workdir.
+    ValueError: bad arguments (e.g. batch_size not divisible by the device count, or
+      the workdir not held).
     CheckpointMismatchError: the workdir's checkpoint belongs to another run or is broken.
     TrainingError: a non-finite loss or grad_norm (names the global step and epoch).
   """
+  if not locking.is_held(workdir):
+    raise ValueError(f"train: workdir {workdir} is not held; call train inside "
+                     "storage.locking.hold(workdir)")
   m = _check_data(data, batch_size)
   if checkpoint_every < 1 or keep < 1:
     raise ValueError(f"train: checkpoint_every={checkpoint_every} and keep={keep} must be >= 1")
   mesh = sharding.data_mesh()
   sharding.check_divisible(batch_size, mesh)
   abstract = _abstract_state(init_fn, mesh)
-  run_meta = {"fingerprint": checkpointing.to_json(fingerprint),
+  run_meta = {"fingerprint": identity.to_json(fingerprint),
               "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m}}
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
@@ -165,18 +171,19 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
 
   step = jax.jit(keyed_step, donate_argnums=0)
   data = {k: np.asarray(v) for k, v in data.items()}
-  with checkpointing.Checkpoints(workdir / runs.CHECKPOINTS, keep=keep) as ckpts:
+  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts:
     done = ckpts.latest_step or 0
     if done:
       state, saved = ckpts.load(done, abstract)
-      checkpointing.check_metadata(saved, run_meta, str(ckpts.root / str(done)))
+      identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}",
+                         CheckpointMismatchError)
     else:
       state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
     if on_start is not None:
       on_start()
     primary = sharding.is_primary()
     if primary:
-      _trim_metrics(workdir / runs.METRICS, done)
+      _trim_metrics(workdir / layout.METRICS, done)
     with tqdm(total=num_epochs * steps_per_epoch, initial=min(done, num_epochs) * steps_per_epoch,
               desc=desc, unit="step", dynamic_ncols=True, disable=not primary) as bar:
       for epoch in range(done, num_epochs):
@@ -200,30 +207,8 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
         line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
                 "seconds": round(time.perf_counter() - start, 4), **summary}
         if primary:
-          atomic.append_jsonl(workdir / runs.METRICS, line)
+          atomic.append_jsonl(workdir / layout.METRICS, line)
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
           ckpts.save(epoch + 1, state, run_meta)
   return sharding.local_copy(state)
 
-
-def load_latest(workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State],
-                fingerprint: Any = None) -> tuple[State, Any]:
-  """Restores the latest complete checkpoint of a `train` run, e.g. for inference.
-
-  Args:
-    workdir: the `train` workdir.
-    init_fn: the run's `init_fn`; only its output structure is used (`jax.eval_shape`).
-    fingerprint: when given, must equal the saved fingerprint.
-
-  Returns:
-    (state, saved_fingerprint), the state replicated over all visible devices.
-
-  Raises:
-    CheckpointMismatchError: no complete checkpoint, another fingerprint, other shapes, or
-      a corrupt checkpoint.
-  """
-  root = Path(workdir) / runs.CHECKPOINTS
-  state, saved = checkpointing.load_latest(root, _abstract_state(init_fn, sharding.data_mesh()))
-  if fingerprint is not None:
-    checkpointing.check_metadata(saved.get("fingerprint"), fingerprint, str(root))
-  return state, saved.get("fingerprint")

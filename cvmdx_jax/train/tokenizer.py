@@ -4,39 +4,34 @@
 (`cvmdx_jax.train.loop`), logs per epoch the loss terms and, over the whole training
 split, entries in use, perplexity and classifier accuracy; then fits the per-entry
 Gaussians on the training latents and saves tokens q, latents z_hat and delta of every
-split under `<workdir>/tokens/` (`cvmdx_jax.tokens`), plus `<workdir>/tokenizer.json`
-(model settings, fingerprint) for `cvmdx_jax.runs.load_tokenizer`.
+split under `<workdir>/tokens/` (`runs.tokens`), plus `<workdir>/tokenizer.json`
+(model settings, fingerprint) for `runs.loaders.load_tokenizer`.
 
 The train state is a plain pytree: {"step", "params" (pure dict of the NNX Params),
 "opt_state", "usage" (Q,) running codebook usage}.
 """
 
-import hashlib
 import os
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import optax
 
-from cvmdx_jax import checkpointing, locking, runs, sharding, tokens as tokens_lib
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax import sharding
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import uncertainty
+from cvmdx_jax.runs import fingerprints, layout
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.runs.config import TokenizerRunConfig, TrainConfig
+from cvmdx_jax.storage import identity, locking
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.identity import content_id
 from cvmdx_jax.train import loop
-
-
-def model_config(config: ml_collections.ConfigDict) -> tokenizer_lib.TokenizerConfig:
-  """Static model settings from the run config's `model` and `quantizer` sections
-  (raises ValueError on bad values)."""
-  quantizer = to_dataclass(quantizer_lib.QuantizerConfig, config.quantizer,
-                           latent_dim=config.model.encoder.latent_dim)
-  return to_dataclass(tokenizer_lib.TokenizerConfig, config.model, quantizer=quantizer)
 
 
 def make_init_fn(model_cfg, tx):
@@ -73,10 +68,9 @@ def make_step_fn(graphdef, model_cfg, tx):
   return step_fn
 
 
-def optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
-  """Adam with global-norm clipping (`config.train`)."""
-  return optax.chain(optax.clip_by_global_norm(config.train.grad_clip),
-                     optax.adam(config.train.learning_rate))
+def optimizer(t: TrainConfig) -> optax.GradientTransformation:
+  """Adam with global-norm clipping."""
+  return optax.chain(optax.clip_by_global_norm(t.grad_clip), optax.adam(t.learning_rate))
 
 
 def encode(graphdef, params, xi, mask, chunk: int = 512):
@@ -100,26 +94,23 @@ _encode_jit = jax.jit(encode, static_argnums=(0, 4))
 
 
 def _content_id(splits: dict[str, Scenarios]) -> str:
-  digest = hashlib.sha1()
-  for name in sorted(splits):
-    for field in ("xi", "mask", "label"):
-      digest.update(np.ascontiguousarray(getattr(splits[name], field)).tobytes())
-  return f"content-sha1:{digest.hexdigest()[:16]}"
+  return content_id({name: {f: getattr(s, f) for f in ("xi", "mask", "label")}
+                     for name, s in splits.items()})
 
 
-def _load_splits(config) -> tuple[dict[str, Scenarios], str]:
+def _load_splits(config: TokenizerRunConfig) -> tuple[dict[str, Scenarios], str]:
   names = config.splits or dataset_lib.split_names(config.data_dir)
   splits = {s: dataset_lib.load_split(config.data_dir, s) for s in names}
   return splits, dataset_lib.dataset_id(config.data_dir)
 
 
 @locking.holds("workdir")
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.PathLike, *,
+def train_and_evaluate(config: TokenizerRunConfig, workdir: str | os.PathLike, *,
                        splits: dict[str, Scenarios] | None = None) -> dict:
   """Trains the tokeniser (or resumes / returns a finished run) and writes its outputs.
 
   Args:
-    config: see configs/tokenizer.py.
+    config: the run (`TokenizerRunConfig.from_config` of configs/tokenizer.py).
     workdir: run directory (checkpoints, metrics.jsonl, tokenizer.json, tokens/).
     splits: scenarios per split name (must hold "train"); default: read
       `config.splits` (empty: every split) from `config.data_dir` with
@@ -128,7 +119,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   Returns:
     The final train state.
   """
-  model_cfg = model_config(config)
+  model_cfg = config.model
   if splits is None:
     splits, dataset_id = _load_splits(config)
   else:
@@ -136,12 +127,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
   if "train" not in splits:
     raise ValueError(f"tokenizer: splits {sorted(splits)} lack 'train' (config.splits)")
   for name, s in splits.items():
-    s.validate(source=f"{config.get('data_dir', '<given>')}/{name}")
+    s.validate(source=f"{config.data_dir}/{name}")
   train = splits["train"]
-  tx = optimizer(config)
+  tx = optimizer(config.train)
   graphdef = tokenizer_lib.make_graphdef(model_cfg)
-  fp = runs.tokenizer_fingerprint(model_cfg, dataset_id)
-  runs.check_tokenizer_dir(workdir, fp)
+  fp = fingerprints.tokenizer(model_cfg, dataset_id)
+  saved = layout.saved_tokenizer_fingerprint(workdir)
+  if saved is not None:
+    identity.check(saved, fp, f"tokeniser run {workdir}", CheckpointMismatchError)
   xi_train, mask_train = jnp.asarray(train.xi), jnp.asarray(train.mask)
 
   def epoch_end_fn(state, epoch):
@@ -160,17 +153,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | os.Path
       seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
       keep=config.train.keep,
       epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}",
-      on_start=lambda: runs.write_tokenizer_dir(workdir, model_cfg, fp))
+      on_start=lambda: layout.write_tokenizer_dir(workdir, model_cfg, fp))
   if not sharding.is_primary():  # process 0 writes the tokens of a multi-process run
     return state
 
   workdir = Path(workdir)
-  meta = {"dataset_id": dataset_id, "data_dir": str(config.get("data_dir", "")),
+  meta = {"dataset_id": dataset_id, "data_dir": config.data_dir,
           "codebook_size": model_cfg.quantizer.codebook_size,
           "latent_dim": model_cfg.encoder.latent_dim, "quantizer": model_cfg.quantizer.kind,
           "checkpoint": {"workdir": str(workdir.resolve()), "step": int(state["step"]),
                          "fingerprint": fp,
-                         "params_sha256": checkpointing.tree_digest(state["params"])}}
+                         "params_id": content_id(state["params"])}}
   encoded = {name: _encode_jit(graphdef, state["params"], jnp.asarray(s.xi),
                                jnp.asarray(s.mask), config.encode_batch)
              for name, s in splits.items()}

@@ -2,13 +2,14 @@
 
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cvmdx_jax.data import dataset, extract, highd
-from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.data.errors import DataError, DataWarning
 from tests.data.conftest import write_recording
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -57,8 +58,11 @@ def test_truncated_file(highd_dir):
   data = path.read_bytes()
   path.write_bytes(data[:-40])  # the last row loses its last fields
   last = data[:-40].decode().splitlines()
-  missing = highd.TRACKS_COLUMNS[len(last[-1].split(","))]  # first column cut off
-  err = _expect(highd_dir, "01_tracks.csv", len(last), missing)
+  cut = highd.TRACKS_COLUMNS[len(last[-1].split(",")):]
+  missing = [c for c in cut if c in highd.READ_COLUMNS["tracks"]][0]  # first one read
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")  # no warning about the unread columns before the error
+    err = _expect(highd_dir, "01_tracks.csv", len(last), missing)
   assert "truncated" in str(err)
 
 
@@ -88,16 +92,57 @@ def test_inconsistent_frames(highd_dir):
     ("01_tracks.csv", 7, 6, "1e40", "xVelocity"),
     ("01_tracks.csv", 8, 4, "-4.00", "width"),
     ("01_tracks.csv", 9, 24, "6.5", "laneId"),
-    ("01_tracks.csv", 10, 9, "45.0", "yAcceleration"),
     ("01_tracks.csv", 11, 1, "1e40", "id"),
-    ("01_tracksMeta.csv", 3, 2, "0.00", "height"),
     ("01_tracksMeta.csv", 2, 4, "299", "finalFrame"),
     ("01_tracksMeta.csv", 3, 0, "1", "id"),  # duplicate id
-    ("01_tracksMeta.csv", 5, 8, "1e300", "traveledDistance"),
 ])
 def test_values_outside_physical_ranges(highd_dir, name, line, field, value, column):
   _edit_line(highd_dir / name, line, field, value)
   _expect(highd_dir, name, line, column)
+
+
+def _expect_warning(highd_dir, name, row, column):
+  """The recording reads exactly like the clean one, with one DataWarning at the cell."""
+  clean = highd.read_recording(highd_dir, 2)  # the same content as recording 1
+  with pytest.warns(DataWarning) as record:
+    rec = highd.read_recording(highd_dir, 1)
+  assert [(Path(w.message.path).name, w.message.row, w.message.column)
+          for w in record] == [(name, row, column)]
+  assert name in str(record[0].message) and "not read" in str(record[0].message)
+  for field in ("track_id", "frame", "lane", "direction", "pos", "vel", "neighbours"):
+    np.testing.assert_array_equal(getattr(rec, field), getattr(clean, field))
+
+
+# Fields: tracks yAcceleration 9, dhw 12, ttc 14; tracksMeta width 1, height 2, class 6,
+# traveledDistance 8; recordingMeta locationId 2, month 4.
+@pytest.mark.parametrize("name, line, field, value, column", [
+    ("01_tracks.csv", 10, 14, "2.7e14", "ttc"),  # another exporter's "no leader"
+    ("01_tracks.csv", 10, 14, "inf", "ttc"),
+    ("01_tracks.csv", 11, 12, "abc", "dhw"),
+    ("01_tracks.csv", 10, 9, "45.0", "yAcceleration"),
+    ("01_tracksMeta.csv", 3, 2, "0.00", "height"),
+    ("01_tracksMeta.csv", 4, 1, "", "width"),
+    ("01_tracksMeta.csv", 5, 8, "1e300", "traveledDistance"),
+    ("01_tracksMeta.csv", 2, 6, "", "class"),
+    ("01_recordingMeta.csv", 2, 4, "", "month"),
+])
+def test_bad_cell_in_an_unread_column_is_a_warning(highd_dir, name, line, field, value,
+                                                   column):
+  _edit_line(highd_dir / name, line, field, value)
+  _expect_warning(highd_dir, name, line, column)
+
+
+def test_unread_column_warning_counts_cells_and_waits_for_the_read_columns(highd_dir):
+  path = highd_dir / "01_tracks.csv"
+  for line in (12, 7, 30):
+    _edit_line(path, line, 14, "1e15")
+  with pytest.warns(DataWarning, match=r"row 7, column 'ttc'.*3 cells") as record:
+    highd.read_recording(highd_dir, 1)
+  assert len(record) == 1
+  _edit_line(path, 40, 2, "1e30")  # x is read: an error, and no warning before it
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    _expect(highd_dir, "01_tracks.csv", 40, "x")
 
 
 def test_blank_line_non_utf8_and_boolean_are_located(highd_dir):
@@ -110,8 +155,10 @@ def test_blank_line_non_utf8_and_boolean_are_located(highd_dir):
   path.write_bytes("\n".join(lines).encode("utf-8", "surrogateescape"))
   _expect(highd_dir, "01_tracks.csv", 12, "y")
   write_recording(highd_dir, 1)
-  _edit_line(highd_dir / "01_recordingMeta.csv", 2, 2, "TRUE")
-  _expect(highd_dir, "01_recordingMeta.csv", 2, "locationId")
+  _edit_line(highd_dir / "01_recordingMeta.csv", 2, 2, "TRUE")  # locationId is not read
+  _expect_warning(highd_dir, "01_recordingMeta.csv", 2, "locationId")
+  _edit_line(highd_dir / "01_recordingMeta.csv", 2, 1, "TRUE")
+  _expect(highd_dir, "01_recordingMeta.csv", 2, "frameRate")
 
 
 def test_swapped_driving_direction(highd_dir):
@@ -146,7 +193,7 @@ def test_recording_without_lane_change(tmp_path):
 @pytest.mark.parametrize("v0, message", [(-5.0, "'v0' is negative"),
                                          (np.nan, "'v0' holds NaN")])
 def test_negative_or_nonfinite_v0_refused(v0, message):
-  from cvmdx_jax import predict
+  from cvmdx_jax.inference import predictor as predict
   from cvmdx_jax.data import scenarios as scenarios_lib
   arrays = {name: np.zeros((3, *shape), dtype) for name, (shape, dtype)
             in scenarios_lib.FIELDS.items()}
@@ -187,3 +234,44 @@ def test_make_dataset_exits_nonzero_without_cache(highd_dir, tmp_path):
   assert result.returncode != 0
   assert "01_tracks.csv, row 9, column 'y'" in result.stderr
   assert not (out / "cache").exists()
+
+
+def _rename(directory: Path, recording_id: int, prefix: str) -> None:
+  for kind, path in highd.recording_paths(directory, recording_id).items():
+    path.rename(directory / f"{prefix}_{kind}.csv")
+
+
+def test_recording_names_with_any_digit_count(tmp_path):
+  """1_*.csv and 002_*.csv are recordings 1 and 2, read from their own files; a sibling
+  missing under that prefix is named as the user would have written it."""
+  from configs import dataset as dataset_config
+  for recording_id, prefix in ((1, "1"), (2, "002"), (3, "03")):
+    write_recording(tmp_path, recording_id)
+    _rename(tmp_path, recording_id, prefix)
+  (tmp_path / "ref").mkdir()
+  write_recording(tmp_path / "ref", 1)
+  assert highd.available_recordings(tmp_path) == [1, 2, 3]
+  assert highd.recording_paths(tmp_path, 2)["tracksMeta"] == tmp_path / "002_tracksMeta.csv"
+  rec, ref = highd.read_recording(tmp_path, 1), highd.read_recording(tmp_path / "ref", 1)
+  assert Path(rec.path).name == "1_tracks.csv"
+  np.testing.assert_array_equal(rec.pos, ref.pos)
+  config = dataset_config.get_config("tiny")
+  config.source, config.highd_dir = "highd", str(tmp_path)
+  config.splits.train, config.splits.val, config.splits.test = (1,), (2,), (3,)
+  splits = dataset.build(config, tmp_path / "out")
+  assert {name: set(np.unique(s.recording_id)) for name, s in splits.items()} == {
+      "train": {1}, "val": {2}, "test": {3}}
+  (tmp_path / "002_recordingMeta.csv").rename(tmp_path / "02_recordingMeta.csv")
+  with pytest.raises(DataError, match="002_recordingMeta.csv: file not found"):
+    highd.read_recording(tmp_path, 2)
+
+
+def test_two_tracks_files_of_one_recording_are_refused_before_reading(highd_dir, tmp_path,
+                                                                      highd_config):
+  (highd_dir / "1_tracks.csv").write_bytes((highd_dir / "01_tracks.csv").read_bytes())
+  with pytest.raises(DataError, match=r"recording 1 has 2 tracks files \(01_tracks.csv, "
+                     r"1_tracks.csv\)"):
+    highd.read_recording(highd_dir, 1)
+  with pytest.raises(DataError, match="recording 1 has 2 tracks files"):
+    dataset.build(highd_config(), tmp_path / "out")
+  assert not (tmp_path / "out" / "cache").exists()

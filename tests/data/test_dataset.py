@@ -103,9 +103,9 @@ def test_id_independent_of_path_spelling(highd_config, highd_dir, tmp_path, monk
     lambda m: {},
     lambda m: "metadata",
     lambda m: {**m, "sources": [s[:2] for s in m["sources"]]},  # no sha256
-    lambda m: {**m, "splits": {k: {x: y for x, y in v.items() if x != "sha256"}
+    lambda m: {**m, "splits": {k: {x: y for x, y in v.items() if x != "count"}
                                for k, v in m["splits"].items()}},
-    lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "bytes": "12"}}},
+    lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "count": "12"}}},
     lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "file": "../../x.npz"}}},
     lambda m: {**m, "splits": []},
     lambda m: {**m, "settings": None},

@@ -4,12 +4,14 @@ failed `dataset.build` leaves the cache as it was.
 
 Each case applies one corruption to one file and states what it must give: `fail` (must
 raise), the file the error must name (None: any file of the recording), the row and column
-(ANY: some value; None: not located, for whole-file problems), and `same` (must read exactly
-like the clean recording).
+(ANY: some value; None: not located, for whole-file problems), `same` (must read exactly
+like the clean recording) and `warns` (a `DataWarning` must name this (kind, row, column):
+a bad cell in a column the reader does not use).
 """
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -17,13 +19,17 @@ import pytest
 
 from cvmdx_jax.data import cache, dataset, highd
 from cvmdx_jax.data import scenarios as scenarios_lib
-from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.data.errors import DataError, DataWarning
 from tests.data.conftest import write_recording
 
 ANY = "any"
 COLUMNS = {"tracks": highd.TRACKS_COLUMNS, "tracksMeta": highd.TRACKS_META_COLUMNS,
            "recordingMeta": highd.RECORDING_META_COLUMNS}
 UNUSED_TEXT = ("class", "month", "weekDay", "startTime")
+NA_TEXT = ("", "nan", "NaN", "NA", "null")  # what pandas reads as a missing cell
+# Index of the last column the reader uses, per file (the later ones it only warns about).
+LAST_READ = {kind: max(COLUMNS[kind].index(c) for c in highd.READ_COLUMNS[kind])
+             for kind in COLUMNS}
 MARKINGS = ("upperLaneMarkings", "lowerLaneMarkings")
 NAN_LIKE = ["", "nan", "NaN", "NA", "null", "inf", "-inf", " "]
 NOT_NUMBERS = ["abc", "1.2.3", "--1", "x1", "#", "e5", "1e", "TRUE", "0x1A", "1_000", "½",
@@ -43,6 +49,7 @@ class Case:
   row: object = ANY
   column: object = ANY
   same: bool = False
+  warns: tuple | None = None
 
 
 def _split(data: bytes) -> list:
@@ -75,6 +82,14 @@ def _is_number(text: str) -> bool:
     return math.isfinite(float(text))
   except ValueError:
     return False
+
+
+def _cut_must_fail(kind: str, partial_line: str) -> bool:
+  """Whether a data line of `kind` cut to `partial_line` lost a column the reader uses (a
+  used column cut inside its value may still read, as another valid number)."""
+  field = partial_line.count(",")
+  return LAST_READ[kind] > field or (LAST_READ[kind] == field
+                                     and not partial_line.split(",")[-1])
 
 
 def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
@@ -117,10 +132,13 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     pool = {"nan": NAN_LIKE, "text": NOT_NUMBERS, "absurd": ABSURD}[what]
     kind, column, line, value, files = _cell_case(rng, clean, what, pool, kinds)
     what = f"{what} {kind} line {line} {column}={value!r}"
-    if column in UNUSED_TEXT:  # any text is fine there, but not an empty cell
-      return Case(what, files, fail=value.strip() in ("", "nan", "NaN", "NA", "null"),
-                  kind=kind, row=line, column=column)
+    if column in UNUSED_TEXT:  # any text is fine there; an empty cell is warned about
+      warns = (kind, line, column) if value.strip() in NA_TEXT else None
+      return Case(what, files, fail=False, same=True, warns=warns)
     must = not _is_number(value) or abs(float(value)) > highd.ABSURD
+    if column not in highd.READ_COLUMNS[kind]:  # read anyway, with a warning
+      return Case(what, files, fail=False, same=True,
+                  warns=(kind, line, column) if must else None)
     if column in MARKINGS:  # a single number is not a list of markings
       must = True
     return Case(what, files, fail=must, kind=kind if must else None,
@@ -130,15 +148,17 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     text = lines[line - 1]
     cut = int(rng.integers(len(text)))
     lines[line - 1] = text[:cut]
-    field = text[:cut].count(",")
-    last = field == len(COLUMNS[kind]) - 1
-    partial = text[:cut].split(",")[-1]
     files[kind] = _join(lines)
-    return Case(what, files, fail=not (last and partial), kind=kind, row=line)
+    must = _cut_must_fail(kind, text[:cut])
+    return Case(what, files, fail=must, kind=kind, row=line,
+                same=LAST_READ[kind] < text[:cut].count(","))
   if what == "cut_file":
     header_end = data.index(b"\n") + 1
     cut = int(rng.integers(header_end + 1, len(data) - 1))
-    return Case(what, {**clean, kind: data[:cut]}, fail=kind != "recordingMeta")
+    kept = data[:cut].decode().split("\n")
+    # A cut before the last data line drops rows, which the reader always notices.
+    must = len(kept) < len(lines) - 1 or _cut_must_fail(kind, kept[-1])
+    return Case(what, {**clean, kind: data[:cut]}, fail=must)
   if what in ("duplicate", "delete", "swap"):
     kind = _pick(rng, ("tracks", "tracksMeta"))
     lines = _split(clean[kind])
@@ -209,9 +229,12 @@ def _check(case: Case, directory: Path, clean_rec) -> str:
   """Reads the corrupted recording; returns 'read' or 'error', failing on a wrong answer."""
   _write(directory, case.files)
   try:
-    rec = highd.read_recording(directory, 1)
+    with warnings.catch_warnings(record=True) as record:
+      warnings.simplefilter("always")
+      rec = highd.read_recording(directory, 1)
   except DataError as err:
     where = f"{case.name}: {err}"
+    assert not case.same, where
     names = [p.name for p in highd.recording_paths(directory, 1).values()]
     assert Path(err.path).name in names, where
     if case.kind is not None:
@@ -224,6 +247,11 @@ def _check(case: Case, directory: Path, clean_rec) -> str:
         assert got == want, where
     return "error"
   assert not case.fail, f"{case.name}: read without error"
+  if case.warns is not None:
+    kind, row, column = case.warns
+    assert any(isinstance(w.message, DataWarning) and w.message.row == row
+               and w.message.column == column
+               and Path(w.message.path).name == f"01_{kind}.csv" for w in record), case.name
   _sane(rec)
   if case.same:
     assert _same(rec, clean_rec), case.name

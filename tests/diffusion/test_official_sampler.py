@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import diffusion, inference
+from cvmdx_jax import diffusion
+from cvmdx_jax.inference import sampling as sampling_lib
 from cvmdx_jax.models import unet1d
 
 NULL = 5
@@ -127,7 +128,7 @@ def test_inference_official_mode_runs_the_official_loop(schedule):
                           attention_levels=(), num_heads=2)
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
-  sampling = inference.SamplingConfig(num_samples=3, mode="official", steps=5,
+  sampling = sampling_lib.SamplingConfig(num_samples=3, mode="official", steps=5,
                                       guidance=diffusion.GuidanceConfig(w_min=0.2, w_max_base=0.8))
   key = jax.random.key(4)
   model = lambda x, t, c: unet1d.apply_unet(g, p, x, t, c)
@@ -135,7 +136,7 @@ def test_inference_official_mode_runs_the_official_loop(schedule):
 
   @jax.jit
   def both(p):
-    got = inference.sample_controls(g, p, 1, 80.0, key, schedule=schedule,
+    got = sampling_lib.sample_controls(g, p, 1, 80.0, key, schedule=schedule,
                                     null_token=cfg.null_token, config=sampling)
     return got, diffusion.official_ddim_sample(fn, key, (3, 125, 2), schedule, steps=5,
                                                w_start=0.2, w_end=0.8)
@@ -143,6 +144,6 @@ def test_inference_official_mode_runs_the_official_loop(schedule):
   got, want = both(p)
   np.testing.assert_allclose(got, want, atol=1e-5)
   with pytest.raises(ValueError, match="mode"):
-    inference.SamplingConfig(mode="official", sampler="ddpm")
+    sampling_lib.SamplingConfig(mode="official", sampler="ddpm")
   with pytest.raises(ValueError, match="mode"):
     dataclasses.replace(sampling, mode="torch")

@@ -97,14 +97,14 @@ def _tiny_unet():
 def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
   """sampler="dpmpp2m" runs through predict_batch and, at many steps, lands where
   many-step DDIM does: both integrate the same guided probability-flow ODE."""
-  from cvmdx_jax import inference
+  from cvmdx_jax.inference import sampling
   cfg, g, p = _tiny_unet()
-  predict = jax.jit(inference.predict_batch, static_argnames=inference.STATIC_ARGNAMES)
+  predict = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
   b = 2
   keys = jax.random.split(jax.random.key(5), b)
 
   def run(sampler, steps):
-    config = inference.SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
+    config = sampling.SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
     return predict(g, p, jnp.arange(b), jnp.array([5.0, 40.0]), jnp.full(b, 30.0),
                    jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
                    null_token=cfg.null_token, config=config).controls
@@ -121,6 +121,6 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
 
 
 def test_unknown_sampler_is_refused():
-  from cvmdx_jax import inference
+  from cvmdx_jax.inference import sampling
   with pytest.raises(ValueError, match="sampling.sampler"):
-    inference.SamplingConfig(sampler="unipc")
+    sampling.SamplingConfig(sampler="unipc")

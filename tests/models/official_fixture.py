@@ -6,9 +6,11 @@ torch-free writer of `torch.save` zip files."""
 import io
 import math
 import pickle
+import struct
 import sys
 import types
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -194,9 +196,9 @@ class _StorageRef:
     self.key, self.array = key, array
 
 
-def write_pt(path, obj, monkeypatch, name="archive"):
-  """Writes `obj` (dicts, numbers, `_Tensor`s, numpy arrays) as a torch.save zip file:
-  `<name>/data.pkl` (protocol 2, storages as persistent ids) + `<name>/data/<key>`."""
+def pickled(obj, monkeypatch) -> tuple[bytes, dict]:
+  """`obj` (dicts, lists, tuples, numbers, `_Tensor`s, numpy arrays) pickled as
+  torch.save does (protocol 2, storages as persistent ids): (pickle, {key: array})."""
   torch_mod = types.ModuleType("torch")
   utils_mod = types.ModuleType("torch._utils")
 
@@ -218,9 +220,14 @@ def write_pt(path, obj, monkeypatch, name="archive"):
 
   def wrap(value):
     if isinstance(value, np.ndarray):
-      return _Tensor(str(next(counter)), np.ascontiguousarray(value))
+      return _Tensor(str(next(counter)), np.array(value, order="C"))  # 0-d stays 0-d
     if isinstance(value, dict):
-      return type(value)((k, wrap(v)) for k, v in value.items())
+      out = type(value)((k, wrap(v)) for k, v in value.items())
+      if hasattr(value, "__dict__"):  # e.g. a state dict's _metadata
+        vars(out).update(vars(value))
+      return out
+    if type(value) in (list, tuple):
+      return type(value)(map(wrap, value))
     return value
 
   class Pickler(pickle.Pickler):
@@ -234,9 +241,77 @@ def write_pt(path, obj, monkeypatch, name="archive"):
 
   buf = io.BytesIO()
   Pickler(buf, protocol=2).dump(wrap(obj))
+  return buf.getvalue(), storages
+
+
+def write_archive(path, pkl: bytes, storages: dict, name="archive"):
+  """A torch.save zip file: `<name>/data.pkl` + `<name>/data/<key>` (stored)."""
   with zipfile.ZipFile(path, "w") as z:
-    z.writestr(f"{name}/data.pkl", buf.getvalue())
+    z.writestr(f"{name}/data.pkl", pkl)
     z.writestr(f"{name}/byteorder", "little")
     for key, array in storages.items():
       z.writestr(f"{name}/data/{key}", array.astype(array.dtype.newbyteorder("<")).tobytes())
     z.writestr(f"{name}/version", "3\n")
+
+
+def write_pt(path, obj, monkeypatch, name="archive"):
+  """Writes `obj` (as `pickled` takes it) as a torch.save zip file."""
+  write_archive(path, *pickled(obj, monkeypatch), name=name)
+
+
+def _local_header(name: str, payload: bytes, method: int, size: int, crc: int) -> bytes:
+  return struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0, crc, len(payload), size,
+                     len(name), 0) + name.encode()
+
+
+def write_zip(path, blob: bytes, records: list[tuple]):
+  """A zip file of `blob` (local headers and payloads) and a central directory of
+  `records` (name, method, local header offset, stored length, size, crc)."""
+  central = b"".join(
+      struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, method, 0, 0, crc, stored, size,
+                  len(name), 0, 0, 0, 0, 0, offset) + name.encode()
+      for name, method, offset, stored, size, crc in records)
+  end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(records), len(records), len(central),
+                    len(blob), 0)
+  path.write_bytes(blob + central + end)
+
+
+def write_entries(path, entries: list[tuple]):
+  """A zip file of (name, payload, method, size, crc) entries, one after the other."""
+  blob, records = b"", []
+  for name, payload, method, size, crc in entries:
+    records.append((name, method, len(blob), len(payload), size, crc))
+    blob += _local_header(name, payload, method, size, crc) + payload
+  write_zip(path, blob, records)
+
+
+def write_deflate_bomb(path, pkl: bytes, name: str, size: int):
+  """A zip file of `<name>/data.pkl` (`pkl`, stored) and a deflated `<name>/data/0` of
+  `size` zero bytes (size a multiple of 1 MiB), the archive ~size / 1000 bytes."""
+  chunk = 1 << 20
+  block = zlib.compressobj(9, zlib.DEFLATED, -15)
+  block = block.compress(bytes(chunk)) + block.flush(zlib.Z_FULL_FLUSH)  # no back-reference
+  crc = 0
+  for _ in range(size // chunk):
+    crc = zlib.crc32(bytes(chunk), crc)
+  write_entries(path, [(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl)),
+                       (f"{name}/data/0", block * (size // chunk) + b"\x03\x00",  # final block
+                        zipfile.ZIP_DEFLATED, size, crc)])
+
+
+def write_nested_entries(path, pkl: bytes, name: str, payload: bytes, depth: int):
+  """A zip file of `<name>/data.pkl` and storages `<name>/data/0..depth-1`, each stored
+  entry's payload holding the next entry (header and payload): entries sharing bytes."""
+  inner = b""
+  for key in reversed(range(depth)):
+    inner = (_local_header(f"{name}/data/{key}", inner + payload, zipfile.ZIP_STORED,
+                           len(inner + payload), zlib.crc32(inner + payload)) + inner + payload)
+  head = _local_header(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl))
+  records = [(f"{name}/data.pkl", 0, 0, len(pkl), len(pkl), zlib.crc32(pkl))]
+  offset, rest = len(head + pkl), inner
+  for key in range(depth):
+    header = 30 + len(f"{name}/data/{key}")
+    body = rest[header:]
+    records.append((f"{name}/data/{key}", 0, offset, len(body), len(body), zlib.crc32(body)))
+    offset, rest = offset + header, body[:len(body) - len(payload)]
+  write_zip(path, head + pkl + inner, records)

@@ -5,6 +5,7 @@ import os
 import pickle
 import subprocess
 import sys
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -13,7 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import runs, torch_zip
+from cvmdx_jax.models import torch_zip
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.storage import locking
 from cvmdx_jax.models import official_import, unet1d
 from tests.models import official_fixture as fx
 
@@ -114,10 +117,84 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
-  denoiser = runs.load_denoiser(workdir)
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    denoiser = loaders.load_denoiser(workdir)
   assert denoiser.unet == official_import.unet_config(official)
-  assert runs.sampling_config(denoiser.config).mode == "official"
+  assert denoiser.config.sampling.mode == "official"
   _, want = official_import.load_official(path)
   jax.tree.map(np.testing.assert_array_equal, denoiser.params, want)
   again = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert again.returncode == 2 and "exists" in again.stderr
+
+
+def _import(args, workdir, timeout=300):
+  cmd = [sys.executable, "experiments/import_official.py", *args, f"--workdir={workdir}"]
+  env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
+  return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True,
+                        timeout=timeout)
+
+
+def _one_line_error(done, *parts):
+  lines = done.stderr.strip().splitlines()
+  assert done.returncode == 2 and len(lines) == 1, done.stderr
+  assert lines[0].startswith("import_official: error: ") and "Traceback" not in done.stderr
+  assert all(p in lines[0] for p in parts), lines[0]
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("input_blocks.0.0.weight", np.zeros((0, 2, 3), np.float32), "has shape (0, 2, 3)"),
+    ("label_emb.weight", np.array(1.0, np.float32), "has shape ()"),
+    ("time_embed.0.weight", np.zeros(64, np.float32), "has shape (64,)"),
+    ("input_blocks.1.0.in_layers.2.weight", np.zeros((32, 96), np.float32),
+     "has shape (32, 96); its layer needs 3 dimensions"),
+    ("input_blocks.1.0.out_layers.3.weight", np.zeros((32, 32, 5), np.float32),
+     "has shape (32, 32, 5); the architecture read from the file expects (32, 32, 3)"),
+    ("middle_block.1.qkv.weight", np.zeros((190, 64, 1), np.float32),
+     "has shape (190, 64, 1); an attention block of 64 channels has (192, 64, 1)"),
+    ("out.0.bias", np.full(32, np.nan, np.float32), "out.0.bias holds NaN or Inf"),
+    ("label_emb.weight", np.full((8, 64), np.inf, np.float32), "label_emb.weight holds NaN"),
+])
+def test_malformed_parameters_name_file_and_parameter(official, tmp_path, monkeypatch, name,
+                                                      value, message):
+  path = tmp_path / "bad.pt"
+  fx.write_pt(path, {**official, name: value}, monkeypatch)
+  with pytest.raises(official_import.OfficialCheckpointError) as e:
+    official_import.load_official(path)
+  assert str(e.value).startswith(f"{path}: ") and name in str(e.value)
+  assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_non_string_keys_are_refused(official, tmp_path, monkeypatch):
+  path = tmp_path / "int_keys.pt"
+  fx.write_pt(path, {**official, 3: np.zeros(2, np.float32)}, monkeypatch)
+  with pytest.raises(official_import.OfficialCheckpointError,
+                     match="int_keys.pt: the state dict has a key 3 of type int"):
+    official_import.load_official(path)
+  fx.write_pt(path, {0: np.zeros(2, np.float32)}, monkeypatch)  # no parameter names at all
+  with pytest.raises(official_import.OfficialCheckpointError, match="found entries"):
+    official_import.load_official(path)
+
+
+def test_import_script_refuses_with_one_line(official, tmp_path, monkeypatch):
+  flat = tmp_path / "flat.pt"
+  fx.write_pt(flat, {**official, "input_blocks.0.0.weight": np.zeros((32, 6), np.float32)},
+              monkeypatch)
+  _one_line_error(_import([f"--checkpoint={flat}"], tmp_path / "a"), str(flat),
+                  "input_blocks.0.0.weight", "(32, 6)")
+  good = tmp_path / "good.pt"
+  fx.write_pt(good, official, monkeypatch)
+  _one_line_error(_import([f"--checkpoint={good}", "--num_heads=3"], tmp_path / "b"),
+                  "--num_heads=3", "[64] channels", "divisible by 3 heads")
+  assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_held_workdir_is_refused_with_the_lock_message(official, tmp_path, monkeypatch):
+  good = tmp_path / "good.pt"
+  fx.write_pt(good, official, monkeypatch)
+  workdir = tmp_path / "run"
+  with locking.hold(workdir):  # another import (this process) is writing it
+    done = _import([f"--checkpoint={good}"], workdir)
+    assert os.listdir(workdir) == [locking.LOCK_NAME]
+  _one_line_error(done, f"workdir {workdir} is in use by pid {os.getpid()}")
+  assert not workdir.exists()

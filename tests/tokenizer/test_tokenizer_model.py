@@ -7,6 +7,7 @@ import numpy as np
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax.models import scenario_norm
 from cvmdx_jax.models import tokenizer as tok
+from cvmdx_jax.runs.config import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer as train_tok
 
 
@@ -24,7 +25,7 @@ _loss = jax.jit(lambda model, batch, cfg: tok.loss_fn(*model, batch, cfg), stati
 
 
 def _model(seed=0):
-  cfg = train_tok.model_config(tokenizer_config.get_config("tiny"))
+  cfg = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")).model
   graphdef, params = tok.init_tokenizer(cfg, jax.random.key(seed))
   return cfg, (graphdef, params)
 
@@ -76,8 +77,8 @@ def test_reconstruction_weighs_the_ego_by_ego_weight(scenarios_factory):
 def test_classifier_beats_chance_on_separable_toy_set(scenarios_factory):
   config = tokenizer_config.get_config("tiny")
   config.quantizer.codebook_size = 16
-  cfg = train_tok.model_config(config)
-  tx = train_tok.optimizer(config)
+  run = TokenizerRunConfig.from_config(config)
+  cfg, tx = run.model, train_tok.optimizer(run.train)
   graphdef = tok.make_graphdef(cfg)
   state = train_tok.make_init_fn(cfg, tx)(jax.random.key(0))
   step = jax.jit(train_tok.make_step_fn(graphdef, cfg, tx))

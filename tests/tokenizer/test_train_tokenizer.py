@@ -1,4 +1,4 @@
-"""train_and_evaluate smoke run, runs.load_tokenizer/tokenize, saved tokens, mismatch errors."""
+"""train_and_evaluate smoke run, loaders.load_tokenizer/tokenize, saved tokens, mismatch errors."""
 
 import json
 
@@ -9,8 +9,10 @@ import scipy.stats
 
 from configs import common
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import runs, tokens as tokens_lib
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.runs.config import TokenizerRunConfig
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import tokenizer as train_tok
 
 
@@ -19,6 +21,7 @@ def trained(tmp_path_factory, scenarios_factory):
   workdir = tmp_path_factory.mktemp("tok")
   config = tokenizer_config.get_config("tiny")
   config.train.num_epochs = 2
+  config = TokenizerRunConfig.from_config(config)
   splits = {"train": scenarios_factory(24, 0), "test": scenarios_factory(10, 1)}
   train_tok.train_and_evaluate(config, workdir, splits=splits)
   return workdir, config, splits
@@ -36,16 +39,16 @@ def test_smoke_run_writes_metrics_and_tokens(trained):
   assert lines[-1]["entries_in_use"] == len(np.unique(q))
   np.testing.assert_allclose(lines[-1]["perplexity"],
                              np.exp(scipy.stats.entropy(np.bincount(q))), rtol=1e-4)
-  assert meta["split"] == "train" and meta["codebook_size"] == config.quantizer.codebook_size
+  assert meta["split"] == "train" and meta["codebook_size"] == config.model.quantizer.codebook_size
   assert train_tokens.z_hat.shape == (24, config.model.encoder.latent_dim)
   assert np.all(train_tokens.delta >= 0)
 
 
 def test_load_tokenizer_reproduces_saved_tokens(trained):
   workdir, _, splits = trained
-  bundle = runs.load_tokenizer(workdir)
+  bundle = loaders.load_tokenizer(workdir)
   test = splits["test"]
-  q, z_hat, delta = jax.jit(runs.TokenizerBundle.tokenize)(bundle, test.xi, test.mask)
+  q, z_hat, delta = jax.jit(loaders.TokenizerBundle.tokenize)(bundle, test.xi, test.mask)
   saved, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(workdir, "test"))
   np.testing.assert_array_equal(q, saved.q)
   np.testing.assert_allclose(z_hat, saved.z_hat, atol=1e-5)
@@ -66,9 +69,9 @@ def test_tokens_from_another_dataset_are_refused(trained):
 def test_checkpoint_with_other_codebook_size_is_refused(trained):
   workdir, config, splits = trained
   other = tokenizer_config.get_config("tiny")
-  other.quantizer.codebook_size = config.quantizer.codebook_size + 1
+  other.quantizer.codebook_size = config.model.quantizer.codebook_size + 1
   with pytest.raises(CheckpointMismatchError, match="codebook_size"):
-    train_tok.train_and_evaluate(other, workdir, splits=splits)
+    train_tok.train_and_evaluate(TokenizerRunConfig.from_config(other), workdir, splits=splits)
 
 
 def test_bad_dataset_and_missing_files_give_clear_errors(trained, tmp_path):
@@ -80,7 +83,7 @@ def test_bad_dataset_and_missing_files_give_clear_errors(trained, tmp_path):
   with pytest.raises(ValueError, match="lack 'train'"):
     train_tok.train_and_evaluate(config, tmp_path / "bad", splits={"test": splits["test"]})
   with pytest.raises(FileNotFoundError, match="tokenizer.json"):
-    runs.load_tokenizer(tmp_path)
+    loaders.load_tokenizer(tmp_path)
   broken = tmp_path / "broken.npz"
   broken.write_bytes(b"not a zip")
   with pytest.raises(ValueError, match="broken.npz"):
@@ -101,4 +104,4 @@ def test_parse_arg_and_presets():
   assert tokenizer_config.get_config("paper").train.learning_rate == 4.5e-6
   assert tokenizer_config.get_config(None).train.batch_size == 64
   with pytest.raises(ValueError, match="quantizer kind 'xq'"):
-    train_tok.model_config(tokenizer_config.get_config("quantizer=xq"))
+    TokenizerRunConfig.from_config(tokenizer_config.get_config("quantizer=xq")).model

@@ -10,14 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import constants, tokens as tokens_lib
+from cvmdx_jax import constants
 from cvmdx_jax.data import cache, dataset as dataset_lib
 from cvmdx_jax.data.scenarios import from_arrays
+from cvmdx_jax.runs import tokens as tokens_lib
 
 LANE_M = 3.5
 NUM_TOKENS = 4
 TOKENIZER_CHECKPOINT = {"fingerprint": {"kind": "synthetic"}, "step": 7,
-                        "params_sha256": "0" * 64}
+                        "params_id": "0" * 64}
 
 
 def make_scenarios(m: int, seed: int):

@@ -1,4 +1,4 @@
-"""Tests of cvmdx_jax.checkpointing: round trips and the mismatch errors users see."""
+"""Tests of cvmdx_jax.storage.checkpointing and storage.identity: round trips and the mismatch errors users see."""
 
 import logging
 
@@ -8,8 +8,9 @@ import numpy as np
 import optax
 import pytest
 
-from cvmdx_jax import checkpointing, sharding
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax import sharding
+from cvmdx_jax.storage import checkpointing, identity
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 
 
 def _state(width: int = 3):
@@ -54,13 +55,13 @@ def test_partial_load_reads_only_the_requested_leaves(tmp_path):
   assert logging.getLogger("absl").filters == absl_filters
 
 
-def test_check_metadata_names_every_differing_key():
-  saved = {"model": {"q": 60, "latent": 16}, "dataset": "sumo-a"}
-  checkpointing.check_metadata(saved, {"dataset": "sumo-a", "model": {"latent": 16, "q": 60}},
-                               "ck")
+def test_identity_check_names_every_differing_key():
+  saved = {"model": {"q": 60, "latent": 16}, "dataset": "sumo-a", "scale": [4.0, 0.7]}
+  identity.check(saved, {"dataset": "sumo-a", "model": {"latent": 16, "q": 60},
+                         "scale": (4.0, 0.7)}, "ck")  # tuples compare as JSON lists
   with pytest.raises(CheckpointMismatchError) as e:
-    checkpointing.check_metadata(saved, {"model": {"q": 90, "latent": 16}, "dataset": "highd",
-                                         "extra": 1}, "ck/5")
+    identity.check(saved, {"model": {"q": 90, "latent": 16}, "dataset": "highd",
+                           "extra": 1, "scale": [4.0, 0.7]}, "ck/5", CheckpointMismatchError)
   msg = str(e.value)
   assert "ck/5" in msg and "model.q: saved 60, expected 90" in msg
   assert "dataset: saved 'sumo-a', expected 'highd'" in msg and "extra" in msg
@@ -78,7 +79,17 @@ def test_check_structure_names_leaf_and_both_shapes():
 
 def test_fingerprint_must_be_json():
   with pytest.raises(ValueError, match="fingerprint must be JSON"):
-    checkpointing.to_json({"f": object()})
+    identity.to_json({"f": object()})
+
+
+def test_content_id_covers_paths_dtypes_shapes_and_bytes():
+  a = {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "n": 3}
+  same = {"n": 3, "w": jnp.arange(6, dtype=jnp.float32).reshape(2, 3)}  # key order, jax array
+  assert identity.content_id(a) == identity.content_id(same)
+  assert len(identity.content_id(a)) == 64
+  for other in ({**a, "w": a["w"].reshape(3, 2)}, {**a, "w": a["w"].astype(np.float64)},
+                {**a, "n": 4}, {"v": a["w"], "n": 3}, {**a, "w": a["w"] + 1}):
+    assert identity.content_id(other) != identity.content_id(a)
 
 
 def test_load_of_missing_step_and_garbled_checkpoint(tmp_path):

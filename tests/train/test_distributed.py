@@ -79,7 +79,7 @@ def test_two_processes_match_one_process_and_write_one_run(tmp_path):
 
 def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   holder = subprocess.Popen(
-      [sys.executable, "-c", "import sys, time\nfrom cvmdx_jax import locking\n"
+      [sys.executable, "-c", "import sys, time\nfrom cvmdx_jax.storage import locking\n"
        "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n",
        str(tmp_path)], stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)))
   try:

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import loop
 from tests.train import toy
 
@@ -22,7 +22,7 @@ JOB = REPO / "tests" / "train" / "toy_job.py"
 
 def _train(workdir, epochs, seed=0, m=20, batch_size=4, **kw):
   init_fn, step_fn = toy.make_task(**{k: kw.pop(k) for k in ("hidden", "nan_at") if k in kw})
-  return loop.train(workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(m),
+  return toy.train(workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(m),
                     batch_size=batch_size, num_epochs=epochs, seed=seed,
                     fingerprint=kw.pop("fingerprint", {"q": 60, "dataset": "toy"}), **kw)
 
@@ -57,7 +57,7 @@ def test_padded_last_batch_matches_hand_computed_sgd(tmp_path):
     loss, grad = jax.value_and_grad(loss_fn)(state["w"])
     return {"w": state["w"] - lr * grad}, {"loss": loss, "max_err": jnp.max(jnp.abs(err))}
 
-  state = loop.train(workdir=tmp_path, init_fn=lambda key: {"w": jnp.asarray(w0, jnp.float32)},
+  state = toy.train(workdir=tmp_path, init_fn=lambda key: {"w": jnp.asarray(w0, jnp.float32)},
                      step_fn=step_fn, data={"x": x.astype(np.float32), "y": y.astype(np.float32)},
                      batch_size=4, num_epochs=2, seed=seed, fingerprint={})
   w, losses = w0.copy(), []
@@ -109,7 +109,7 @@ def test_resumed_run_is_bit_identical_and_finished_run_does_not_train(tmp_path):
 
   def refuse(*_):
     raise AssertionError("a finished run must not step")
-  again = loop.train(workdir=tmp_path / "full", init_fn=toy.make_task()[0], step_fn=refuse,
+  again = toy.train(workdir=tmp_path / "full", init_fn=toy.make_task()[0], step_fn=refuse,
                      data=toy.make_data(20), batch_size=4, num_epochs=4, seed=0,
                      fingerprint={"q": 60, "dataset": "toy"})
   np.testing.assert_array_equal(toy.flat_params(again), toy.flat_params(full))
@@ -128,7 +128,7 @@ def test_non_finite_loss_stops_with_step_and_keeps_last_good_checkpoint(tmp_path
     _train(tmp_path, epochs=3, nan_at=7)  # 5 steps per epoch: step 7 is in epoch 2
   assert [p.name for p in (tmp_path / "checkpoints").iterdir()] == ["1"]
   assert _epochs_logged(tmp_path) == [1]
-  state, fingerprint = loop.load_latest(tmp_path, toy.make_task()[0])
+  state, fingerprint = toy.restore(tmp_path, toy.make_task()[0])
   assert int(state["step"]) == 5 and fingerprint == {"q": 60, "dataset": "toy"}
   assert np.isfinite(toy.flat_params(state)).all()
 
@@ -138,13 +138,13 @@ def test_other_fingerprint_or_model_size_or_no_checkpoint_is_refused(tmp_path):
   with pytest.raises(CheckpointMismatchError, match="q: saved 60, expected 90"):
     _train(tmp_path, epochs=2, fingerprint={"q": 60 + 30, "dataset": "toy"})
   with pytest.raises(CheckpointMismatchError, match="dataset: saved 'toy', expected 'highd'"):
-    loop.load_latest(tmp_path, toy.make_task()[0], {"q": 60, "dataset": "highd"})
+    toy.restore(tmp_path, toy.make_task()[0], {"q": 60, "dataset": "highd"})
   with pytest.raises(CheckpointMismatchError, match="loop.batch_size: saved 4, expected 2"):
     _train(tmp_path, epochs=2, batch_size=2)
   with pytest.raises(CheckpointMismatchError, match=r"params/l1/kernel.*\(3, 8\).*\(3, 16\)"):
-    loop.load_latest(tmp_path, toy.make_task(hidden=16)[0])
+    toy.restore(tmp_path, toy.make_task(hidden=16)[0])
   with pytest.raises(CheckpointMismatchError, match="no complete checkpoint"):
-    loop.load_latest(tmp_path / "empty", toy.make_task()[0])
+    toy.restore(tmp_path / "empty", toy.make_task()[0])
   assert not (tmp_path / "empty").exists()
 
 
@@ -153,7 +153,7 @@ def test_corrupt_checkpoint_is_named(tmp_path):
   meta = tmp_path / "checkpoints" / "1" / "state" / "_METADATA"
   meta.write_text(meta.read_text()[:40])  # truncated
   with pytest.raises(CheckpointMismatchError, match=f"{tmp_path / 'checkpoints' / '1'} is corrupt"):
-    loop.load_latest(tmp_path, toy.make_task()[0])
+    toy.restore(tmp_path, toy.make_task()[0])
   with pytest.raises(CheckpointMismatchError, match="is corrupt"):
     _train(tmp_path, epochs=2)
 
@@ -164,7 +164,7 @@ def test_half_written_checkpoints_are_never_picked_up(tmp_path):
   shutil.copytree(ckpts / "2", ckpts / "3")
   (ckpts / "3" / "commit_success.txt").unlink()  # finished writing, never committed
   shutil.copytree(ckpts / "2", ckpts / "4.orbax-checkpoint-tmp-1234")  # killed mid-write
-  state, _ = loop.load_latest(tmp_path, toy.make_task()[0])
+  state, _ = toy.restore(tmp_path, toy.make_task()[0])
   assert int(state["step"]) == 2 * 5
   resumed = _train(tmp_path, epochs=3)
   np.testing.assert_array_equal(toy.flat_params(resumed),
@@ -177,16 +177,19 @@ def test_bad_arguments_are_refused(tmp_path):
   kw = dict(workdir=tmp_path, init_fn=init_fn, step_fn=step_fn, num_epochs=1, seed=0,
             fingerprint={})
   with pytest.raises(ValueError, match="common leading dimension"):
-    loop.train(data={"x": np.zeros((4, 3)), "y": np.zeros((5, 1))}, batch_size=2, **kw)
+    toy.train(data={"x": np.zeros((4, 3)), "y": np.zeros((5, 1))}, batch_size=2, **kw)
   with pytest.raises(ValueError, match="'weight'"):
-    loop.train(data={"x": np.zeros((4, 3)), "weight": np.zeros(4)}, batch_size=2, **kw)
+    toy.train(data={"x": np.zeros((4, 3)), "weight": np.zeros(4)}, batch_size=2, **kw)
   with pytest.raises(ValueError, match="batch_size=0"):
-    loop.train(data=toy.make_data(4), batch_size=0, **kw)
+    toy.train(data=toy.make_data(4), batch_size=0, **kw)
   with pytest.raises(ValueError, match="PRNG key"):
-    loop.train(data=toy.make_data(4), batch_size=2,
-               **{**kw, "init_fn": lambda key: {"key": key, **init_fn(key)}})
+    toy.train(data=toy.make_data(4), batch_size=2,
+              **{**kw, "init_fn": lambda key: {"key": key, **init_fn(key)}})
   with pytest.raises(ValueError, match="fingerprint must be JSON"):
-    loop.train(data=toy.make_data(4), batch_size=2, **{**kw, "fingerprint": {"f": object}})
+    toy.train(data=toy.make_data(4), batch_size=2, **{**kw, "fingerprint": {"f": object}})
+  with pytest.raises(ValueError, match="is not held"):  # the caller holds the workdir
+    loop.train(data=toy.make_data(4), batch_size=2, **kw)
+  assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.slow

@@ -20,7 +20,6 @@ import jax
 import numpy as np
 
 from cvmdx_jax import sharding
-from cvmdx_jax.train import loop
 from tests.train import toy
 
 
@@ -31,20 +30,19 @@ def task(name: str, m: int):
   rng = np.random.default_rng(0)
   if name == "diffusion":
     from configs import diffusion as diffusion_config
-    from cvmdx_jax.config_dataclass import to_dataclass
-    from cvmdx_jax.models import unet1d
+    from cvmdx_jax.runs.config import DiffusionConfig
     from cvmdx_jax.train import diffusion
-    config = diffusion_config.get_config("tiny")
-    cfg = to_dataclass(unet1d.UNetConfig, config.model, num_tokens=4)
-    _, init_fn, step_fn = diffusion.init_and_step(config, cfg, total_steps=100)
+    config = DiffusionConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(4)
+    _, init_fn, step_fn = diffusion.init_and_step(config, total_steps=100)
     data = {"x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
             "q": rng.integers(0, 4, m).astype(np.int32)}
     return init_fn, step_fn, data
   from configs import tokenizer as tokenizer_config
   from cvmdx_jax.models import tokenizer as tokenizer_lib
+  from cvmdx_jax.runs.config import TokenizerRunConfig
   from cvmdx_jax.train import tokenizer
-  model_cfg = tokenizer.model_config(tokenizer_config.get_config("tiny"))
-  tx = tokenizer.optimizer(tokenizer_config.get_config("tiny"))
+  run = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny"))
+  model_cfg, tx = run.model, tokenizer.optimizer(run.train)
   graphdef = tokenizer_lib.make_graphdef(model_cfg)
   data = {"xi": rng.normal(0, [20, 2, 30, 0.3], (m, 9, 75, 4)).astype(np.float32),
           "mask": rng.uniform(size=(m, 9, 75)) < 0.8, "label": rng.integers(0, 3, m)}
@@ -71,7 +69,7 @@ def main() -> int:
     return {}
 
   try:
-    state = loop.train(workdir=a.workdir, init_fn=init_fn, step_fn=step_fn,
+    state = toy.train(workdir=a.workdir, init_fn=init_fn, step_fn=step_fn,
                        data=data, batch_size=a.batch_size,
                        num_epochs=a.epochs, seed=a.seed, fingerprint={"task": "toy"},
                        epoch_end_fn=epoch_end)

@@ -4,7 +4,7 @@
 is written to the directory and writes "<pid> <host>" into that file; a second process gets
 `WorkdirLockedError` naming the holder. The OS drops the lock when the holder exits or is
 killed (kill -9 included), so a stale lock file never blocks a rerun. Holds nest within one
-process: the trainers hold their workdir and the shared loop holds it again. A directory that
+process; `is_held` tells code that needs its caller's hold (`train.loop.train`). A directory that
 `hold` created and that holds nothing but the lock file afterwards is removed again, so a run
 refused for bad input leaves no trace.
 
@@ -59,6 +59,11 @@ def holder(path: str | os.PathLike) -> str:
     return f"pid {int(pid)} on {host}"
   except (OSError, ValueError):
     return "an unknown process"
+
+
+def is_held(workdir: str | os.PathLike) -> bool:
+  """Whether this process holds `workdir` (`hold`)."""
+  return lock_path(workdir, _process()[0]) in _held
 
 
 def _try_lock(path: Path) -> int | None:

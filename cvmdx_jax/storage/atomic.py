@@ -7,8 +7,9 @@ never a half-written one, and an existing file survives a crash or a failing wri
 The temporary is created like a plain `open()` creates a file (mode 0o666 filtered by
 the process umask, e.g. 0o644 under umask 022), so results can be shared as usual.
 
-Format helpers: `write_bytes`, `write_text`, `write_json`, `write_jsonl`, `write_npz`,
-`write_mat`, `save_figure`; `append_jsonl` appends one line to a log.
+Format helpers: `write_bytes`, `write_text`, `write_json` (text of `json_text`),
+`write_jsonl`, `write_npz`, `write_mat`; `write_all` writes several files as a group (all
+new or all old); `append_jsonl` appends one line to a log.
 """
 
 import contextlib
@@ -59,9 +60,25 @@ def write_text(path: str | os.PathLike, text: str) -> None:
     f.write(text)
 
 
-def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
+def write_all(files: dict[str | os.PathLike, bytes]) -> None:
+  """Writes {path: bytes}: every file to its temporary (flushed) before any is renamed,
+  the first path renamed last. A failure while writing (a full disk) leaves every old
+  file, or none, in place and no temporary."""
+  with contextlib.ExitStack() as stack:
+    for path, data in files.items():
+      f = stack.enter_context(writing(path))
+      f.write(data)
+      f.flush()
+
+
+def json_text(value: Any, **kwargs) -> str:
   """`value` as JSON (indent 2 unless `kwargs` say otherwise) and a final newline."""
-  write_text(path, json.dumps(value, **{"indent": 2, **kwargs}) + "\n")
+  return json.dumps(value, **{"indent": 2, **kwargs}) + "\n"
+
+
+def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
+  """`json_text(value, **kwargs)` to `path`."""
+  write_text(path, json_text(value, **kwargs))
 
 
 def write_jsonl(path: str | os.PathLike, records: Iterable[Any]) -> None:
@@ -94,9 +111,3 @@ def write_mat(path: str | os.PathLike, mat: dict) -> None:
   """A dict of arrays as a MATLAB 5 .mat file (`scipy.io.savemat`)."""
   with writing(path) as f:
     scipy.io.savemat(f, mat)
-
-
-def save_figure(path: str | os.PathLike, fig, **kwargs) -> None:
-  """`fig.savefig` atomically; the format comes from the suffix of `path` (e.g. .png)."""
-  with writing(path) as f:
-    fig.savefig(f, format=Path(path).suffix.lstrip(".") or None, **kwargs)

@@ -5,21 +5,17 @@ to a temporary name and renamed when complete (orbax), each holding the state an
 metadata dict (the run's fingerprint). A step directory without the commit marker orbax
 writes last, or a leftover temporary directory, is never loaded. Every failure a user can
 cause (no checkpoint, other fingerprint, other shapes, garbled files) is raised as
-`CheckpointMismatchError` naming the directory and the mismatch. Each step's metadata also
-holds the sha256 of every saved leaf's bytes (`leaf_digests`), and `<step>/files.sha256.json`
-the sha256 of every file orbax wrote; `load` verifies both (all files, and the leaves it
-restores), so a flipped byte anywhere in a step, even one orbax still decodes, is refused
-naming the file or leaf (steps saved before checksums existed load with a warning). orbax's INFO logging is
-silenced while orbax runs (`_quiet_orbax`), not for the whole process.
+`CheckpointMismatchError` naming the directory and the mismatch. After orbax has committed a
+step, `<step>/checksums.json` records the sha256 of every file it wrote (the package's one
+checksum scheme, `storage.checksums`); `load` verifies all of them first, so a flipped byte
+anywhere in a step, even one orbax still decodes, is refused naming the file. orbax's INFO
+logging is silenced while orbax runs (`_quiet_orbax`), not for the whole process.
 """
 
 import contextlib
-import hashlib
-import json
 import logging
 import os
 import shutil
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +23,12 @@ import jax
 import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
-from cvmdx_jax import atomic, checksums
+from cvmdx_jax.storage import checksums, identity
 
 # orbax writes this file into the temporary directory just before the final rename; a
 # step directory without it was not finished by orbax (or was tampered with).
 _COMMIT_MARKER = "commit_success.txt"
 _STATE = "state"  # the checkpointable (subdirectory) that holds the state pytree
-_DIGESTS = "sha256"  # custom-metadata key of the per-leaf digests (`leaf_digests`)
-_FILE_DIGESTS = "files.sha256.json"  # {relative path: sha256} of a step's files
 
 
 class CheckpointMismatchError(ValueError):
@@ -59,39 +53,6 @@ def _quiet_orbax():
     logger.removeFilter(quiet)
 
 
-def to_json(value: Any, name: str = "fingerprint") -> Any:
-  """`value` as plain JSON data (tuples become lists); ValueError when it is not JSON-able."""
-  try:
-    return json.loads(json.dumps(value, sort_keys=True))
-  except (TypeError, ValueError) as e:
-    raise ValueError(f"{name} must be JSON-serialisable: {e}") from e
-
-
-def _flatten_json(value: Any, prefix: str = "") -> dict[str, Any]:
-  if isinstance(value, dict) and value:
-    out = {}
-    for k, v in value.items():
-      out.update(_flatten_json(v, f"{prefix}.{k}" if prefix else str(k)))
-    return out
-  return {prefix: value}
-
-
-def check_metadata(saved: Any, expected: Any, where: str) -> None:
-  """Raises CheckpointMismatchError naming every key where `saved` and `expected` differ.
-
-  Args:
-    saved: the JSON metadata stored with a checkpoint.
-    expected: the JSON-able metadata of the current run (compared after a JSON round trip).
-    where: the checkpoint directory, for the message.
-  """
-  a, b = _flatten_json(saved), _flatten_json(to_json(expected))
-  diffs = [f"{k}: saved {a.get(k, '<absent>')!r}, expected {b.get(k, '<absent>')!r}"
-           for k in sorted(set(a) | set(b)) if a.get(k, KeyError) != b.get(k, KeyError)]
-  if diffs:
-    raise CheckpointMismatchError(
-        f"checkpoint {where} belongs to another run; differing keys: " + "; ".join(diffs))
-
-
 def _path_key(path: tuple[Any, ...]) -> str:
   """A tree path as 'a/0/b', the same for a namedtuple field and orbax's dict key."""
   parts = []
@@ -108,68 +69,6 @@ def _path_key(path: tuple[Any, ...]) -> str:
 def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
   leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
   return {_path_key(p): (tuple(x.shape), np.dtype(x.dtype).name) for p, x in leaves}
-
-
-def _leaf_bytes(x: Any) -> bytes:
-  if isinstance(x, jax.Array) and not x.is_fully_addressable:
-    x = x.addressable_data(0)  # replicated train state: every process holds all of it
-  return np.ascontiguousarray(jax.device_get(x)).tobytes()
-
-
-def leaf_digests(tree: Any) -> dict[str, str]:
-  """{leaf path ('a/0/b'): sha256 hex of the leaf's bytes} of a pytree of arrays."""
-  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-  return {_path_key(p): checksums.sha256(_leaf_bytes(x)) for p, x in leaves}
-
-
-def tree_digest(tree: Any) -> str:
-  """One sha256 hex of a pytree of arrays (its leaf paths, dtypes, shapes and bytes)."""
-  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-  digest = hashlib.sha256()
-  for path, x in sorted(leaves, key=lambda pl: _path_key(pl[0])):
-    digest.update(f"{_path_key(path)}:{np.dtype(x.dtype).name}:{tuple(x.shape)};".encode())
-    digest.update(_leaf_bytes(x))
-  return digest.hexdigest()
-
-
-def _file_digests(step_dir: Path) -> dict[str, str]:
-  return {str(p.relative_to(step_dir)): checksums.sha256(p.read_bytes())
-          for p in sorted(step_dir.rglob("*")) if p.is_file() and p.name != _FILE_DIGESTS}
-
-
-def _check_files(step_dir: Path) -> None:
-  """Raises CheckpointMismatchError naming the files of a step that differ from their
-  recorded sha256 (or were added / removed); warns when none were recorded."""
-  path = step_dir / _FILE_DIGESTS
-  if not path.is_file():
-    warnings.warn(f"checkpoint {step_dir} has no {_FILE_DIGESTS} (saved before checksums "
-                  "existed); its files cannot be verified; retrain to protect it", stacklevel=3)
-    return
-  try:
-    saved = json.loads(path.read_text())
-  except ValueError as e:
-    raise CheckpointMismatchError(f"checkpoint {path} is corrupt ({e})") from e
-  now = _file_digests(step_dir)
-  bad = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
-  if bad:
-    raise CheckpointMismatchError(
-        f"checkpoint {step_dir} is corrupt: file(s) {bad[:4]} differ from their sha256 in "
-        f"{_FILE_DIGESTS}; delete this step directory to fall back to an older one, or retrain")
-
-
-def _check_digests(state: Any, saved: dict[str, str] | None, where: Path) -> None:
-  """Raises CheckpointMismatchError when a restored leaf's bytes differ from its digest."""
-  if saved is None:
-    warnings.warn(f"checkpoint {where} carries no checksums (saved before they existed); "
-                  "its integrity cannot be verified; retrain to protect it", stacklevel=3)
-    return
-  bad = [k for k, d in leaf_digests(state).items() if saved.get(k) != d]
-  if bad:
-    raise CheckpointMismatchError(
-        f"checkpoint {where} is corrupt: the restored bytes of leaf(s) {bad[:4]}"
-        + (f" and {len(bad) - 4} more" if len(bad) > 4 else "")
-        + " differ from their sha256 saved with the checkpoint; delete this step "
-        "directory to fall back to an older one, or retrain")
 
 
 def check_structure(saved_meta: Any, abstract_state: Any, where: str,
@@ -252,12 +151,11 @@ class Checkpoints:
       raise ValueError(f"Checkpoints({self.root}) was opened read-only")
     with _quiet_orbax():
       self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
-                       custom_metadata={"cvmdx": to_json(metadata, "checkpoint metadata"),
-                                        _DIGESTS: leaf_digests(state)})
+                       custom_metadata={"cvmdx": identity.to_json(metadata,
+                                                                   "checkpoint metadata")})
       self._ckptr.wait()
     if jax.process_index() == 0:  # orbax has committed every process's files
-      step_dir = self.root / str(step)
-      atomic.write_json(step_dir / _FILE_DIGESTS, _file_digests(step_dir), indent=1)
+      checksums.record_tree(self.root / str(step))
     self._steps = _complete_steps(self.root)[0]
 
   def load(self, step: int, abstract_state: Any, *, partial: bool = False) -> tuple[Any, Any]:
@@ -273,14 +171,19 @@ class Checkpoints:
       (state, metadata): the restored pytree and the JSON metadata saved with it.
 
     Raises:
-      CheckpointMismatchError: the step is missing, garbled, its leaves differ from
-        `abstract_state` (the message names the leaf and both shapes), or a restored
-        leaf's bytes differ from the sha256 saved with it.
+      CheckpointMismatchError: the step is missing, garbled, a file differs from its
+        sha256, or its leaves differ from `abstract_state` (the message names the leaf
+        and both shapes).
     """
     where = self.root / str(step)
     if step not in self._steps:
       raise CheckpointMismatchError(f"no complete checkpoint {where}")
-    _check_files(where)
+    try:
+      checksums.verify_tree(where)
+    except checksums.CorruptRunError as e:
+      raise CheckpointMismatchError(
+          f"checkpoint {where} is corrupt: {e}; delete this step directory to fall back to "
+          "an older one, or retrain") from e
     try:
       with _quiet_orbax():
         meta = ocp.metadata(where, _STATE)
@@ -302,7 +205,6 @@ class Checkpoints:
     custom = meta.custom_metadata or {}
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
-    _check_digests(state, custom.get(_DIGESTS), where)
     return state, custom["cvmdx"]
 
 

@@ -1,4 +1,7 @@
-"""Content checksums of run files: one `checksums.json` manifest per directory.
+"""The one checksum scheme of the package.
+
+Checksums: one `checksums.json` manifest per directory, used by run directories, the
+dataset cache (`data.cache`) and every checkpoint step (`storage.checkpointing`).
 
 Every checksummed file `<dir>/<name>` has the entry `name -> sha256 hex digest` in
 `<dir>/checksums.json`. `write_bytes` records the digest of the new content around the
@@ -6,26 +9,27 @@ atomic replacement of the file: first the entry lists the old and the new digest
 only the new one, so a crash at any point leaves a file whose digest is listed.
 `read_bytes` verifies the digest and raises `CorruptRunError` naming the file when the
 bytes differ (a flipped byte, a truncated copy, an edit by hand). A file without an entry
-was written before checksums existed (decision: such runs are accepted with a warning, see
-BUILD_NOTES.md "Integrity").
+is refused like a corrupt one. `record_tree` / `verify_tree` do the same for every file
+below a directory that another writer (orbax) made, with relative paths as names.
 
 Format helpers: `write_json` / `read_json`, `write_npz` / `read_npz`.
 """
 
+import contextlib
 import hashlib
 import io
 import json
 import os
-import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cvmdx_jax import atomic
+from cvmdx_jax.storage import atomic
 
 MANIFEST = "checksums.json"
+_CHUNK = 1 << 20
 
 
 class CorruptRunError(ValueError):
@@ -35,6 +39,15 @@ class CorruptRunError(ValueError):
 def sha256(data: bytes) -> str:
   """The hex sha256 digest of `data`."""
   return hashlib.sha256(data).hexdigest()
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+  """The hex sha256 of a file's bytes, read in 1 MiB chunks."""
+  digest = hashlib.sha256()
+  with open(path, "rb") as handle:
+    while chunk := handle.read(_CHUNK):
+      digest.update(chunk)
+  return digest.hexdigest()
 
 
 def _read_manifest(directory: Path) -> dict[str, Any]:
@@ -58,15 +71,36 @@ def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
   atomic.write_json(directory / MANIFEST, manifest, indent=1, sort_keys=True)
 
 
+def write_all(files: dict[str | os.PathLike, bytes]) -> None:
+  """Writes {path: bytes} of one existing directory as a group (`atomic.write_all`: all
+  new or all old) and records every digest; after a failure the manifest is as before
+  (or absent, as before)."""
+  paths = [Path(p) for p in files]
+  directory = paths[0].parent
+  if any(p.parent != directory for p in paths):
+    raise ValueError(f"checksums.write_all: files of several directories: {paths}")
+  manifest, fresh = _read_manifest(directory), not (directory / MANIFEST).exists()
+  before = dict(manifest)
+  digests = {p.name: sha256(data) for p, data in zip(paths, files.values())}
+  for name, digest in digests.items():
+    manifest[name] = sorted({*_digests(manifest.get(name)), digest})
+  _write_manifest(directory, manifest)
+  try:
+    atomic.write_all(files)
+  except BaseException:
+    if fresh:
+      (directory / MANIFEST).unlink()
+    else:  # if even this fails, the extra digests are harmless: the old ones are listed
+      with contextlib.suppress(OSError):
+        _write_manifest(directory, before)
+    raise
+  manifest.update(digests)
+  _write_manifest(directory, manifest)
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
   """Writes `data` atomically to `path` and records its digest; the directory must exist."""
-  path = Path(path)
-  digest, manifest = sha256(data), _read_manifest(path.parent)
-  manifest[path.name] = sorted({*_digests(manifest.get(path.name)), digest})
-  _write_manifest(path.parent, manifest)
-  atomic.write_bytes(path, data)
-  manifest[path.name] = digest
-  _write_manifest(path.parent, manifest)
+  write_all({path: data})
 
 
 def read_bytes(path: str | os.PathLike) -> bytes:
@@ -80,9 +114,10 @@ def read_bytes(path: str | os.PathLike) -> bytes:
   data = path.read_bytes()
   entry = _read_manifest(path.parent).get(path.name)
   if entry is None:
-    warnings.warn(f"{path}: no checksum recorded (written before checksums existed); its "
-                  "integrity cannot be verified; retrain the run to protect it", stacklevel=2)
-  elif sha256(data) not in _digests(entry):
+    raise CorruptRunError(f"{path}: no checksum in {path.parent / MANIFEST} (a file of an "
+                          "older version, or copied without its manifest); rerun the command "
+                          "that wrote it")
+  if sha256(data) not in _digests(entry):
     raise CorruptRunError(
         f"{path}: content does not match its sha256 in {path.parent / MANIFEST} (the file "
         "is corrupt or was edited); restore it or rerun the command that wrote it")
@@ -91,7 +126,7 @@ def read_bytes(path: str | os.PathLike) -> bytes:
 
 def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
   """`value` as JSON (indent 2 unless `kwargs` say otherwise), checksummed."""
-  write_bytes(path, (json.dumps(value, **{"indent": 2, **kwargs}) + "\n").encode())
+  write_bytes(path, atomic.json_text(value, **kwargs).encode())
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -118,3 +153,27 @@ def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
       return {name: npz[name] for name in npz.files}
   except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
     raise CorruptRunError(f"{path}: unreadable .npz file ({e})") from e
+
+
+def record_tree(directory: str | os.PathLike) -> None:
+  """Writes <directory>/checksums.json with the sha256 of every file below `directory`."""
+  directory = Path(directory)
+  _write_manifest(directory, _tree_digests(directory))
+
+
+def _tree_digests(directory: Path) -> dict[str, str]:
+  return {p.relative_to(directory).as_posix(): file_sha256(p)
+          for p in sorted(directory.rglob("*")) if p.is_file() and p.name != MANIFEST}
+
+
+def verify_tree(directory: str | os.PathLike) -> None:
+  """Raises CorruptRunError naming the files below `directory` that differ from (or are
+  missing from, or were added to) its checksums.json."""
+  directory = Path(directory)
+  if not (directory / MANIFEST).is_file():
+    raise CorruptRunError(f"{directory}: no {MANIFEST}; its files cannot be verified")
+  saved, now = _read_manifest(directory), _tree_digests(directory)
+  bad = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+  if bad:
+    raise CorruptRunError(f"file(s) {bad[:4]} below {directory} differ from their sha256 "
+                          f"in its {MANIFEST}")

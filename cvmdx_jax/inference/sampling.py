@@ -1,6 +1,6 @@
 """The inference path: (denoiser params, tokens q, delta, v0, psi0, keys[, ego
 features]) -> N sampled control sequences, their trajectories, the mean trajectory and
-the hypotheses. Plain jittable code: the caller jits at its boundary (`predict.Predictor`;
+the hypotheses. Plain jittable code: the caller jits at its boundary (`predictor.Predictor`;
 `jax.jit(predict_batch, static_argnames=STATIC_ARGNAMES)` for a batch alone).
 
 Each scenario draws its noise from its own key, so a scenario's samples do not
@@ -12,7 +12,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from cvmdx_jax import constants, ego_motion, normalization, vmm
+from cvmdx_jax import constants, ego_motion, targets, vmm
+from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
                                  ddpm_sample, guided_v_fn, official_ddim_sample)
 from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
@@ -21,12 +22,14 @@ from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
 SAMPLERS = ("ddim", "ddpm", "dpmpp2m")
 MODES = ("paper", "official")
-STATIC_ARGNAMES = ("graphdef", "null_token", "config")  # of `predict_batch` under jax.jit
+# of `predict_batch` under jax.jit
+STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")
 
 
 @dataclasses.dataclass(frozen=True)
 class SamplingConfig:
-  """Static sampling settings (paper defaults).
+  """Static sampling settings (paper defaults); what the denoiser itself is (control scale,
+  conditioning) is its `targets.DenoiserConfig`.
 
   Attributes:
     num_samples: N samples per scenario.
@@ -39,12 +42,7 @@ class SamplingConfig:
     steps: S, DDIM or DPM-Solver++(2M) steps (guided evaluations per sample).
     eta: DDIM noise (0 = deterministic).
     clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
-      official sampler clips to [-1, 1]); None = no clipping.
-    control_scale: (m/s^2, rad/s) that one normalised unit of [a_x, yaw_rate] stands
-      for; a property of the trained denoiser (`Predictor` sets it from the run).
-    conditioning: `diffusion.conditioning` of the trained denoiser (`ego_motion`); set
-      from the run by `Predictor`, like control_scale.
-    residual_decay_s: (a_x, yaw rate) decay time constants of its residual base, s.
+      official sampler clips to [-1, 1]); None or 0 = no clipping.
     guidance: `GuidanceConfig`.
     hypotheses: `HypothesisConfig`.
   """
@@ -55,21 +53,19 @@ class SamplingConfig:
   steps: int = 10
   eta: float = 0.0
   clip_x0: float | None = 1.0
-  control_scale: tuple[float, float] = normalization.PAPER_SCALE
-  conditioning: str = "token"
-  residual_decay_s: tuple[float, float] = (3.0, 0.1)
   guidance: GuidanceConfig = GuidanceConfig()
   hypotheses: HypothesisConfig = HypothesisConfig()
 
   def __post_init__(self):
+    check_ranges(self, {"num_samples": POSITIVE, "steps": POSITIVE, "eta": NON_NEGATIVE,
+                        "clip_x0": NON_NEGATIVE})
+    if self.clip_x0 == 0:  # the config's "0 = off"
+      object.__setattr__(self, "clip_x0", None)
     if self.sampler not in SAMPLERS:
       raise ValueError(f"sampling.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
     if self.mode not in MODES or (self.mode == "official" and self.sampler != "ddim"):
       raise ValueError(f"sampling.mode must be one of {MODES} ('official' with sampler "
                        f"'ddim'), got {self.mode!r} with {self.sampler!r}")
-    if self.num_samples < 1:
-      raise ValueError(f"sampling.num_samples must be >= 1, got {self.num_samples}")
-    ego_motion.check_conditioning(self.conditioning)
 
 
 @jax.tree_util.register_dataclass
@@ -118,7 +114,9 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
 
 
 def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, schedule: Schedule,
-                  null_token: int, config: SamplingConfig = SamplingConfig()) -> Prediction:
+                  null_token: int, config: SamplingConfig = SamplingConfig(),
+                  denoiser_config: targets.DenoiserConfig = targets.DenoiserConfig()
+                  ) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.
 
   Args:
@@ -129,23 +127,27 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
     v0: (B,) ego speed at t0, m/s.
     psi0: (B,) ego heading at t0, rad.
     keys: (B,) PRNG keys, one per scenario.
-    ego: (B, F) `ego_motion.ego_features`; required unless config.conditioning is "token".
+    ego: (B, F) `ego_motion.ego_features`; required unless the conditioning is "token".
     schedule: the diffusion `Schedule` the model was trained with.
     null_token: the unconditional token (Q).
     config: `SamplingConfig`.
+    denoiser_config: the trained denoiser's `targets.DenoiserConfig` (control scale,
+      conditioning, residual decay).
 
   Returns:
     `Prediction`.
   """
-  if config.conditioning != "token" and ego is None:
-    raise ValueError(f"predict_batch: conditioning {config.conditioning!r} needs ego features")
-  film = ego if ego_motion.uses_film(config.conditioning) else None
+  conditioning = denoiser_config.conditioning
+  if conditioning != "token" and ego is None:
+    raise ValueError(f"predict_batch: conditioning {conditioning!r} needs ego features")
+  film = ego if ego_motion.uses_film(conditioning) else None
   x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
       graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
       config=config, ego=ei))(q, delta, keys, film)
-  controls = normalization.denormalize_controls(x0, config.control_scale)
-  if ego_motion.uses_residual(config.conditioning):
-    controls = controls + ego_motion.residual_controls(ego, config.residual_decay_s)[:, None]
+  controls = targets.denormalize_controls(x0, denoiser_config.control_scale)
+  if ego_motion.uses_residual(conditioning):
+    controls = controls + ego_motion.residual_controls(
+        ego, denoiser_config.residual_decay_s)[:, None]
   trajectories = vmm.rollout(controls, v0[:, None], psi0[:, None])
   return Prediction(controls=controls, trajectories=trajectories,
                     mean=jnp.mean(trajectories, axis=1),

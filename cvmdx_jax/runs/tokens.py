@@ -9,10 +9,10 @@ can be tokenised by several tokenisers without them overwriting each other):
 
 Each file holds a JSON `metadata` string: dataset_id, data_dir, split, num_scenarios,
 codebook_size, latent_dim, quantizer and the tokeniser checkpoint (workdir, step,
-fingerprint, params_sha256). Files are written atomically and checksummed
-(`cvmdx_jax.checksums`): a reader never sees a half-written one, and a corrupted one
-raises `checksums.CorruptRunError` naming it. `load_tokens(..., dataset_id=...)` refuses tokens made from another
-dataset with `TokensMismatchError`.
+fingerprint, params_id). Files are written atomically and checksummed
+(`storage.checksums`): a reader never sees a half-written one, and a corrupted one raises
+`checksums.CorruptRunError` naming it. `load_tokens(..., dataset_id=...)` refuses tokens
+made from another dataset with `TokensMismatchError` (`storage.identity.check`).
 """
 
 import dataclasses
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax import checksums
+from cvmdx_jax.storage import checksums, identity
 from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"
@@ -105,11 +105,10 @@ def load_tokens(path: str | os.PathLike, *, dataset_id: str | None = None,
   """
   path = Path(path)
   arrays, metadata = _read_npz(path, ("q", "z_hat", "delta"))
-  if dataset_id is not None and metadata.get("dataset_id") != dataset_id:
-    raise TokensMismatchError(
-        f"{path}: tokens were made from dataset_id {metadata.get('dataset_id')!r} "
-        f"(data_dir {metadata.get('data_dir')!r}), not from the requested dataset_id "
-        f"{dataset_id!r}; re-run the tokeniser on this dataset")
+  if dataset_id is not None:
+    identity.check({"dataset_id": metadata.get("dataset_id")}, {"dataset_id": dataset_id},
+                   f"{path} (tokens of data_dir {metadata.get('data_dir')!r}; re-run the "
+                   "tokeniser on this dataset)", TokensMismatchError)
   if num_scenarios is not None and arrays["q"].shape[0] != num_scenarios:
     raise TokensMismatchError(f"{path}: tokens cover {arrays['q'].shape[0]} scenarios, "
                               f"the split has {num_scenarios}")

@@ -26,10 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from cvmdx_jax import checkpointing, ego_motion, runs, sharding, tokens as tokens_lib
+from cvmdx_jax import ego_motion, sharding
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
-from cvmdx_jax.inference import Prediction, SamplingConfig, predict_batch
+from cvmdx_jax.inference.sampling import Prediction, SamplingConfig, predict_batch
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.storage import identity
 
 
 class IncompatibleRunsError(ValueError):
@@ -69,12 +72,14 @@ class PredictorOutput:
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def _predict(tokenizer: runs.TokenizerBundle, denoiser: runs.Denoiser, xi, mask, v0, psi0,
+def _predict(tokenizer: loaders.TokenizerBundle, denoiser: loaders.Denoiser, xi, mask, v0, psi0,
              keys, schedule, *, config: SamplingConfig):
   q, _, delta = tokenizer.tokenize(xi, mask)
-  ego = None if config.conditioning == "token" else ego_motion.ego_features(xi, mask)
+  targets = denoiser.config.diffusion
+  ego = None if targets.conditioning == "token" else ego_motion.ego_features(xi, mask)
   pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys, ego,
-                       schedule=schedule, null_token=denoiser.null_token, config=config)
+                       schedule=schedule, null_token=denoiser.null_token, config=config,
+                       denoiser_config=targets)
   return pred, q, delta
 
 
@@ -89,8 +94,8 @@ class Predictor:
   default, inf, flags none).
   """
 
-  tokenizer: runs.TokenizerBundle
-  denoiser: runs.Denoiser
+  tokenizer: loaders.TokenizerBundle
+  denoiser: loaders.Denoiser
   sampling: SamplingConfig
   chunk_size: int = 256
   delta_limit: float = math.inf
@@ -104,36 +109,24 @@ class Predictor:
   def load(cls, tokenizer_dir, diffusion_dir, sampling: SamplingConfig | None = None,
            chunk_size: int = 256) -> "Predictor":
     """Loads both runs and checks that they belong together: the denoiser must have been
-    trained on tokens of exactly this tokeniser checkpoint (fingerprint, which includes
-    the dataset id, step and, for runs that recorded it, the sha256 of its parameters).
+    trained on tokens of exactly this tokeniser checkpoint (its fingerprint, which includes
+    the dataset id, its step and the content id of its parameters).
+
+    Args:
+      tokenizer_dir, diffusion_dir: the two run directories.
+      sampling: sampling settings; default: the diffusion run's (`config.sampling`).
+      chunk_size: scenarios per jitted call.
 
     Raises:
       IncompatibleRunsError: the denoiser was trained on tokens of another tokeniser
-        checkpoint, or its token count differs from the codebook size.
+        checkpoint (the message names the differing keys).
     """
-    bundle = runs.load_tokenizer(tokenizer_dir)
-    denoiser = runs.load_denoiser(diffusion_dir)
-    used = checkpointing.to_json(denoiser.fingerprint.to_dict()).get("tokenizer", {})
-    given = checkpointing.to_json(bundle.fingerprint.to_dict())
-    q = bundle.config.quantizer.codebook_size
-    differing = sorted(f"fingerprint.{k}" for k in set(used.get("fingerprint") or {}) | set(given)
-                       if (used.get("fingerprint") or {}).get(k) != given.get(k))
-    if "params_sha256" not in used:
-      warnings.warn(f"denoiser {diffusion_dir} does not record the sha256 of its tokeniser's "
-                    "parameters (trained before it existed); only fingerprint and step are "
-                    "checked; retrain it to protect the pair", stacklevel=2)
-    differing += [f"{k} (denoiser trained on {used[k]!r}, tokeniser has {bundle.checkpoint[k]!r})"
-                  for k in ("step", "params_sha256")
-                  if k in used and used[k] != bundle.checkpoint[k]]
-    if denoiser.unet.num_tokens != q or differing:
-      raise IncompatibleRunsError(
-          f"denoiser {diffusion_dir} was not trained on tokens of tokeniser {tokenizer_dir}: "
-          f"it has {denoiser.unet.num_tokens} tokens vs codebook size {q}; differing "
-          f"tokeniser checkpoint keys: {differing}")
-    trained = runs.sampling_config(denoiser.config)
-    sampling = dataclasses.replace(sampling or trained, control_scale=trained.control_scale,
-                                   conditioning=trained.conditioning,
-                                   residual_decay_s=trained.residual_decay_s)
+    bundle = loaders.load_tokenizer(tokenizer_dir)
+    denoiser = loaders.load_denoiser(diffusion_dir)
+    identity.check(denoiser.fingerprint.to_dict()["tokenizer"], bundle.checkpoint.to_dict(),
+                   f"denoiser {diffusion_dir} (not trained on tokens of tokeniser "
+                   f"{tokenizer_dir})", IncompatibleRunsError)
+    sampling = sampling or denoiser.config.sampling
     train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size,
                delta_limit=float(np.max(train.delta)))

@@ -1,0 +1,1 @@
+"""The inference path: sampling (`sampling`) and the trained-model entry point (`predictor`)."""

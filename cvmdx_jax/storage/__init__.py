@@ -1,0 +1,1 @@
+"""Bytes on disk: atomic writes, checksums, orbax checkpoints, workdir locks."""

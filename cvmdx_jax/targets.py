@@ -1,0 +1,67 @@
+"""What a denoiser predicts: its settings (`DenoiserConfig`) and the control normalisation.
+
+The targets are x0 = clip([a_x, yaw_rate] / control_scale, -1, 1) (the paper divides by
+(4 m/s^2, 0.7 rad/s)); with an `ego_*residual` conditioning, of the controls minus the
+ego's extrapolated current controls (`ego_motion.residual_controls`). The same settings
+make the training targets (`train.diffusion`) and turn samples back into physical
+controls (`inference.sampling`), so they are a property of the trained denoiser and are
+stored with it (`config.json`, section `diffusion`).
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from cvmdx_jax import constants, ego_motion
+from cvmdx_jax.config_dataclass import BELOW_ONE, POSITIVE, ConfigFieldError, check_ranges
+
+PAPER_SCALE = (constants.ACCEL_SCALE, constants.YAW_RATE_SCALE)
+
+
+@dataclasses.dataclass(frozen=True)
+class DenoiserConfig:
+  """The `diffusion` section of a diffusion run (configs/diffusion.py documents the fields).
+
+  Attributes:
+    num_steps: T of the cosine schedule.
+    cond_drop_prob: probability of dropping the token in training (CFG).
+    control_scale: (m/s^2, rad/s) per normalised unit of [a_x, yaw_rate].
+    conditioning: one of `ego_motion.CONDITIONINGS`.
+    residual_decay_s: (a_x, yaw rate) decay time constants of the residual base, s.
+    class_weights: loss weight per maneuver class (keep lane, lcr, lcl).
+  """
+
+  num_steps: int = 1000
+  cond_drop_prob: float = 0.1
+  control_scale: tuple[float, float] = PAPER_SCALE
+  conditioning: str = "token"
+  residual_decay_s: tuple[float, float] = (3.0, 0.1)
+  class_weights: tuple[float, ...] = (1.0,) * constants.NUM_CLASSES
+
+  RANGES: ClassVar = {"num_steps": POSITIVE, "cond_drop_prob": BELOW_ONE,
+                      "control_scale": POSITIVE, "residual_decay_s": POSITIVE,
+                      "class_weights": POSITIVE}
+
+  def __post_init__(self):
+    check_ranges(self, self.RANGES)
+    if len(self.class_weights) != constants.NUM_CLASSES:
+      raise ConfigFieldError("class_weights", self.class_weights,
+                             f"need {constants.NUM_CLASSES} positive finite weights, one per "
+                             f"class {constants.CLASS_NAMES}")
+    ego_motion.check_conditioning(self.conditioning)
+
+  @property
+  def weighted_classes(self) -> bool:
+    """Whether the loss weighs the classes unequally (beyond the paper)."""
+    return any(w != 1.0 for w in self.class_weights)
+
+
+def normalize_controls(controls, scale=PAPER_SCALE):
+  """(..., T, 2) [m/s^2, rad/s] -> (..., T, 2) in [-1, 1] (clipped)."""
+  return jnp.clip(controls / jnp.asarray(scale, jnp.float32), -1.0, 1.0)
+
+
+def denormalize_controls(x0, scale=PAPER_SCALE):
+  """(..., T, 2) normalised controls -> physical [m/s^2, rad/s]."""
+  return x0 * jnp.asarray(scale, jnp.float32)
