@@ -30,7 +30,6 @@ from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.inference.predictor import Predictor
 
 
-@locking.holds("workdir")
 def _sampling_meta(predictor: Predictor) -> dict:
   """The sampling settings of a report with the denoiser's control scale, conditioning and
   residual base among them (where metrics.json has always listed them)."""
@@ -44,6 +43,7 @@ def _sampling_meta(predictor: Predictor) -> dict:
   return out
 
 
+@locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
         figures_per_class: int = 3, sampling_overrides=None, suffix: str = "",
