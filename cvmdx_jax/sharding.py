@@ -8,9 +8,11 @@ imported) gives N devices to test with.
 Several processes (hosts): `initialize_distributed` joins a `jax.distributed` run described
 by the environment; the mesh then spans the devices of every process, each process puts only
 its own rows of a global batch on its own devices (`shard_batch`), and `local_copy` gives a
-process its copy of a replicated state for single-process code.
+process its copy of a replicated state for single-process code. `check_same_run` makes
+every process compare its run's identity with process 0's before any work.
 """
 
+import json
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -19,6 +21,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
+
+from cvmdx_jax.storage import identity
 
 DATA_AXIS = "data"
 ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"
@@ -67,6 +71,32 @@ def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, i
   jax.distributed.initialize(coordinator_address=env[ENV_COORDINATOR], num_processes=count,
                              process_id=index)
   return jax.process_index(), jax.process_count()
+
+
+class ProcessMismatchError(ValueError):
+  """The processes of one `jax.distributed` run were started with different runs."""
+
+
+def check_same_run(fingerprint: Any, what: str = "run") -> None:
+  """Raises `ProcessMismatchError` in every process when any process's `fingerprint`
+  (JSON-able: config, dataset id, ...) differs from process 0's; all processes must call
+  it together. The message names the first differing process and every differing key.
+  One process: returns at once."""
+  if jax.process_count() == 1:
+    return
+  from jax.experimental import multihost_utils
+  mine = json.dumps(identity.to_json(fingerprint), sort_keys=True).encode()
+  sizes = multihost_utils.process_allgather(np.int32(len(mine)))
+  padded = np.zeros(int(np.max(sizes)), np.uint8)
+  padded[:len(mine)] = np.frombuffer(mine, np.uint8)
+  texts = multihost_utils.process_allgather(padded)
+  runs = [json.loads(bytes(t[:n])) for t, n in zip(texts, sizes)]
+  for index, run in enumerate(runs[1:], start=1):
+    diffs = identity.differing_keys(run, runs[0], names=(f"process {index}", "process 0"))
+    if diffs:
+      raise ProcessMismatchError(f"process {index} of {len(runs)} was started with another "
+                                 f"{what} than process 0; differing keys: " + "; ".join(diffs)
+                                 + "; nothing was written")
 
 
 def is_primary() -> bool:

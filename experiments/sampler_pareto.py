@@ -85,7 +85,7 @@ def evaluate(predictor: Predictor, data, sampler: str, steps: int, seed: int) ->
   p = dataclasses.replace(predictor, sampling=dataclasses.replace(
       predictor.sampling, sampler=sampler, steps=steps, mode="paper"))
   out = p(data, seed=seed)
-  errors = scoring.cvmdx_errors(out.prediction, jnp.asarray(data.future))
+  errors = scoring.cvmdx_errors(out, jnp.asarray(data.future), data.label)
   means = {"mean_ade": errors["cvmdx_mean"]["ade"], "mean_fde": errors["cvmdx_mean"]["fde"],
            "min_ade_k": errors["cvmdx_best_of_k"]["ade"],
            "min_fde_k": errors["cvmdx_best_of_k"]["fde"]}

@@ -82,6 +82,13 @@ def test_report_has_every_method_subset_and_figure(runs):
     assert best[subset]["fde"] <= best[subset]["brier_min_fde"] <= best[subset]["fde"] + 1
     assert ("target_lane_hit" in best[subset]) == (subset != "kl")
   assert 0 <= best["all"]["target_lane_hit"] <= 1
+  for subset in scoring.SUBSETS:
+    assert 0 <= best[subset]["ece"] <= 1 and np.isfinite(best[subset]["nll_final"])
+    # >= 0 by the triangle inequality
+    assert 0 <= saved["cvmdx_mean"][subset]["energy_score"] < np.inf
+  diagram = saved["_meta"]["reliability"]
+  assert sum(diagram["count"]) >= 30 and len(diagram["accuracy"]) == 10
+  assert (runs / "eval" / "reliability.png").stat().st_size > 1000
   mean = saved["cvmdx_mean"]
   assert 0 <= mean["all"]["out_of_distribution"] <= 1
   assert -1 <= mean["all"]["delta_ade_spearman"] <= 1
@@ -148,6 +155,7 @@ def test_report_sampling_overrides_reach_the_predictor(runs):
   table = (runs / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
   assert "out of distribution" in table and "Spearman" in table
+  assert "energy score of N [m]" in table and "ECE of p(c)" in table
 
 
 def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
@@ -274,6 +282,13 @@ def test_predictor_refuses_bad_scenarios(runs):
     predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": xi}))
   with pytest.raises(ValueError, match="'xi' has shape"):
     predictor(scenarios.__class__(**{**scenarios.as_dict(), "xi": scenarios.xi[:, :, :50]}))
+  for seed in (2**32, -1, True):
+    with pytest.raises(ValueError, match=r"^seed="):
+      predictor(scenarios, seed=seed)
+  mask = scenarios.mask.copy()
+  mask[1, 0, -1] = False
+  with pytest.raises(ValueError, match="ego absent at t0.*scenario 1"):
+    predictor(scenarios.__class__(**{**scenarios.as_dict(), "mask": mask}))
 
 
 def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):

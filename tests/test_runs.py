@@ -16,6 +16,7 @@ from cvmdx_jax.config_dataclass import ConfigFieldError, to_dataclass
 from cvmdx_jax.diffusion import GuidanceConfig
 from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import unet1d
+from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,6 +60,12 @@ def test_run_configs_become_the_typed_configs():
   assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
   assert demo.diffusion.class_weights == (3.0, 1.0, 1.0)  # chosen on val
   assert demo.diffusion.weighted_classes
+  # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
+  assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (36, "kmeans")
+  assert demo.sampling.hypotheses.endpoint_weight == 0.5
+  for preset in ("paper", "reference"):
+    sampling = DiffusionConfig.from_config(diffusion_config.get_config(preset)).sampling
+    assert (sampling.num_samples, sampling.hypotheses) == (9, HypothesisConfig())
   paper = DiffusionConfig.from_config(diffusion_config.get_config("paper"))
   assert paper.diffusion.class_weights == (1.0, 1.0, 1.0) and not paper.diffusion.weighted_classes
   assert demo.model.channel_mult == (1, 2, 2, 2) and demo.model.attention_levels == (3,)
@@ -91,6 +98,7 @@ def _with(config, field: str, value):
     ("diffusion.class_weights", (1.0, 2.0), "need 3 positive finite weights"),
     ("model.dropout", float("nan"), "must be finite"),
     ("sampling.guidance.t_c", 0.0, "must be > 0"),
+    ("sampling.hypotheses.endpoint_weight", 1.5, "must be in [0, 1]"),
     ("seed", 2**32, "must be in [0, 2**32)"),
 ])
 def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value, problem):

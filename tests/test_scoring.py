@@ -166,3 +166,30 @@ def test_learned_baseline_rows_by_hand():
   # lcl: heads 0 and 2 tie at 4 m, the first (p = 0.25) is taken
   np.testing.assert_allclose(errors["mlp_best_of_k"]["brier_min_fde"],
                              [1.0 + 0.5**2, 0.0 + 1.0, 4.0 + 0.75**2], atol=1e-5)
+
+
+def test_calibration_by_hand():
+  hyps, probs, gt, labels = _hypothesis_fixture()
+  ece, diagram = scoring.calibration(hyps, probs, gt, labels)
+  # closest: slot 1 (p 0.3), slot 1 (p 0.1), slot 0 (p 0.15); the other used slots
+  # (p 0.7, 0.9, 0.85) are not; bin 1 holds 0.1 and 0.15, both closest
+  np.testing.assert_allclose(ece["all"]["ece"], (0.7 + 0.7 + 0.9 + 1.75 + 0.85) / 6, rtol=1e-5)
+  np.testing.assert_allclose(ece["kl"]["ece"], 0.7, rtol=1e-5)
+  assert diagram["count"] == [0, 2, 0, 1, 0, 0, 0, 1, 1, 1]
+  np.testing.assert_allclose(diagram["confidence"][1], 0.125, rtol=1e-5)
+  assert diagram["accuracy"][1] == 1.0 and diagram["accuracy"][7] == 0.0
+  assert np.isnan(diagram["accuracy"][0])
+
+
+def test_markdown_tables_show_the_probabilistic_scores():
+  hyps, probs, gt, labels = _hypothesis_fixture()
+  errors = {"cvmdx_best_of_k": {**scoring.best_of_k_errors(hyps, probs, gt, labels),
+                                "nll_final": np.array([1.0, 2.0, 3.0])},
+            "cvmdx_mean": {**scoring.single_trajectory_errors(gt + 1.0, gt),
+                           "energy_score": np.array([0.5, 0.5, 0.5])}}
+  results = scoring.summarise(errors, labels)
+  for subset, row in scoring.calibration(hyps, probs, gt, labels)[0].items():
+    results["cvmdx_best_of_k"][subset].update(row)
+  text = scoring.markdown_tables(results)
+  row = next(line for line in text.splitlines() if line.startswith("| kl | 1 | 0.50"))
+  assert [c.strip() for c in row.split("|")[4:7]] == ["1.00", "0.700", "1.49"]

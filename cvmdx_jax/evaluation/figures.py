@@ -1,5 +1,6 @@
-"""Figures: multimodal predictions (paper Fig. 1) and KL vs codebook usage (Fig. 3), as PNG
-bytes (the report writes them with its other files as one group)."""
+"""Figures: multimodal predictions (paper Fig. 1), KL vs codebook usage (Fig. 3) and the
+reliability diagram of the hypothesis probabilities, as PNG bytes (the report writes them
+with its other files as one group)."""
 
 import io
 
@@ -102,3 +103,27 @@ def plot_kl_vs_usage(token_kl, title: str = "") -> tuple[bytes, tuple | None]:
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7)
   return _png(fig), fit
+
+
+def plot_reliability(diagram: dict, title: str = "") -> bytes:
+  """Reliability diagram: per probability bin, the share of hypotheses that were the
+  closest to the truth against their mean probability (`scoring.calibration`'s
+  diagram: lists "count", "confidence", "accuracy"), with the hypothesis count per bin;
+  returns the PNG bytes."""
+  count = np.asarray(diagram["count"], np.float64)
+  conf, acc = (np.asarray(diagram[k], np.float64) for k in ("confidence", "accuracy"))
+  edges = np.linspace(0.0, 1.0, len(count) + 1)
+  used = count > 0
+  fig, (ax, bars) = plt.subplots(2, 1, figsize=(4.5, 5), sharex=True,
+                                 gridspec_kw={"height_ratios": (3, 1)})
+  ax.plot([0, 1], [0, 1], color="0.6", ls="--", lw=1, label="calibrated")
+  ax.plot(conf[used], acc[used], marker="o", color="tab:blue", label="hypotheses")
+  ax.set_ylabel("share closest to the truth")
+  ax.set_xlim(0, 1)
+  ax.set_ylim(0, 1)
+  ax.set_title(title, fontsize=9)
+  ax.legend(fontsize=7, loc="upper left")
+  bars.bar(edges[:-1], count, width=np.diff(edges), align="edge", color="tab:blue", alpha=0.6)
+  bars.set_xlabel("hypothesis probability p(c)")
+  bars.set_ylabel("count")
+  return _png(fig)

@@ -4,13 +4,14 @@ Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}
 methods `scoring.METHODS` (and, given a trained baseline, `learned_baseline.METHODS`),
 subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
-`predictions_<class><suffix>.png` (Fig. 1 style, for the classes present) and
-`kl_vs_usage<suffix>.png` (Fig. 3 style). Every input is checked before anything is
-written, non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before
-anything is written, and the report is written as a whole or not at all: every file is
-rendered in memory, then written as one group (`checksums.write_all`), so a failure (a
-full disk) leaves the previous report of this suffix, or none, and no temporary; a
-class figure of the previous report that this one lacks is removed.
+`predictions_<class><suffix>.png` (Fig. 1 style, for the classes present),
+`kl_vs_usage<suffix>.png` (Fig. 3 style) and `reliability<suffix>.png` (calibration of
+the hypothesis probabilities). Every input is checked before anything is written,
+non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before anything
+is written, and the report is written as a whole or not at all: every file is rendered in
+memory, then written as one group (`checksums.write_all`), so a failure (a full disk)
+leaves the previous report of this suffix, or none, and no temporary; a class figure of
+the previous report that this one lacks is removed.
 """
 
 import dataclasses
@@ -96,6 +97,10 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
                                                scenarios.label)
   for subset, row in correlation.items():
     results["cvmdx_mean"][subset].update(row)
+  hyp = out.hypotheses
+  ece, diagram = scoring.calibration(hyp.means, hyp.probs, gt, scenarios.label)
+  for subset, row in ece.items():
+    results["cvmdx_best_of_k"][subset].update(row)
   if ddpm_scenarios:
     idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
@@ -112,7 +117,9 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   usage = np.bincount(usage_tokens.q, minlength=q_count)
   token_kl = scoring.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, usage)
   kl_png, fit = figures.plot_kl_vs_usage(token_kl, f"Q = {q_count}, split {split}")
-  pngs = {workdir / f"kl_vs_usage{suffix}.png": kl_png}
+  pngs = {workdir / f"kl_vs_usage{suffix}.png": kl_png,
+          workdir / f"reliability{suffix}.png": figures.plot_reliability(
+              diagram, f"{predictor.sampling.hypotheses.method}, split {split}")}
   stale = []
   for c, name in enumerate(constants.CLASS_NAMES):
     idx = np.flatnonzero(scenarios.label == c)[:figures_per_class]
@@ -128,7 +135,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "baseline": None if baseline is None else {"dir": str(baseline_dir),
                                                      "epoch": baseline.epoch},
-          "kl_power_law_fit": fit, "tokens_in_use_on_split": int(len(np.unique(out.q))),
+          "kl_power_law_fit": fit, "reliability": diagram,
+          "tokens_in_use_on_split": int(len(np.unique(out.q))),
           "out_of_distribution": {
               "rule": "delta > delta_limit, the largest delta over the tokeniser's train split",
               "delta_limit": predictor.delta_limit,

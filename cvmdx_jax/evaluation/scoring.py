@@ -8,7 +8,11 @@ at 5 s, m), `miss_rate` (final error > 2 m), `hit_rate` (final lateral error < 1
 miss_rate of the hypothesis with the smallest final error, hit_rate over any hypothesis,
 plus `brier_min_fde` (Argoverse 2: minFDE_K + (1 - p)^2 of that hypothesis) and
 `target_lane_hit` (lane changes only: a hypothesis with p >= 0.2 ends within 1.75 m of
-the true final lateral position; absent from the kl subset). The mean of N also carries
+the true final lateral position; absent from the kl subset), `nll_final` (nats, the true
+5 s position under the hypotheses as a Gaussian mixture) and `ece` (calibration of p(c)
+as "this hypothesis is the closest to the truth", 10 bins); `evaluation.probabilistic`
+defines both. The mean of N also carries `energy_score` (m, of the N samples against the
+true trajectory, `probabilistic.energy_score`),
 `out_of_distribution` (share of scenarios with delta beyond the tokeniser's training
 range) and `delta_ade_spearman` / `delta_ade_spearman_p` (Spearman's rank correlation of
 delta with the mean trajectory's ADE and its two-sided p-value).
@@ -26,6 +30,7 @@ from scipy import stats
 from cvmdx_jax import constants
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
+from cvmdx_jax.evaluation import probabilistic
 
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")
 SUBSETS = ("all",) + constants.CLASS_NAMES
@@ -104,16 +109,46 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
 
 def cvmdx_errors(output, gt, labels) -> dict:
   """The three cVMDx read-outs of a `PredictorOutput` -> {method: per-scenario errors};
-  the mean's also hold `out_of_distribution` (1.0 where flagged)."""
+  the mean's also hold `out_of_distribution` (1.0 where flagged) and `energy_score`,
+  best of K's `nll_final`."""
   prediction, hyp = output.prediction, output.hypotheses
   mean = single_trajectory_errors(prediction.mean, gt)
   return {
       "cvmdx_mean": {**mean, "out_of_distribution": np.asarray(output.out_of_distribution,
-                                                               np.float64)},
+                                                               np.float64),
+                     "energy_score": probabilistic.energy_score(prediction.trajectories, gt)},
       "cvmdx_most_likely": single_trajectory_errors(
           metrics.most_likely(hyp.means, hyp.probs), gt),
-      "cvmdx_best_of_k": best_of_k_errors(hyp.means, hyp.probs, gt, labels),
+      "cvmdx_best_of_k": {
+          **best_of_k_errors(hyp.means, hyp.probs, gt, labels),
+          "nll_final": probabilistic.final_position_nll(prediction.trajectories, hyp.labels,
+                                                        hyp.probs, gt)},
   }
+
+
+def calibration(hyps, probs, gt, labels) -> tuple[dict, dict]:
+  """Calibration of hypothesis probabilities per subset.
+
+  hyps (M, K, T, 2), probs (M, K) (0 = unused slot), gt (M, T, 2), labels (M,).
+  Returns ({subset: {"ece": value}} (NaN for an empty subset), the reliability-diagram
+  data of all scenarios as lists: {"count", "confidence", "accuracy"} per bin, with
+  confidence and accuracy the bin's means (NaN where empty)).
+  """
+  valid = probs > 0
+  closest = metrics.closest_final(hyps, gt, valid)
+  correct = jnp.arange(probs.shape[-1]) == closest[:, None]
+  out = {}
+  for subset, sel in _subset_masks(np.asarray(labels)):
+    rel = probabilistic.reliability(probs[sel], correct[sel], valid[sel])
+    out[subset] = {"ece": float(probabilistic.expected_calibration_error(rel))
+                   if sel.any() else float("nan")}
+  rel = probabilistic.reliability(probs, correct, valid)
+  count = np.asarray(rel.count, np.float64)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    diagram = {"count": count.tolist(),
+               "confidence": (np.asarray(rel.confidence) / count).tolist(),
+               "accuracy": (np.asarray(rel.correct) / count).tolist()}
+  return out, diagram
 
 
 def delta_rank_correlation(delta, ade, labels) -> dict:
@@ -209,6 +244,15 @@ def markdown_tables(results: dict) -> str:
                    f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
                    f"{fmt(r.get('delta_ade_spearman'))} | "
                    f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |")
+  if "cvmdx_best_of_k" in results:
+    lines += ["", "| cVMDx probabilistic quality | scenarios | energy score of N [m] "
+              "| NLL at 5 s [nats] | ECE of p(c), 10 bins | Brier-minFDE [m] |",
+              "|---|---|---|---|---|---|"]
+    for subset in SUBSETS:
+      r, m = results["cvmdx_best_of_k"][subset], results.get("cvmdx_mean", {}).get(subset, {})
+      lines.append(f"| {subset} | {r['num_scenarios']} | {fmt(m.get('energy_score'))} | "
+                   f"{fmt(r.get('nll_final'))} | {fmt(r.get('ece'), '{:.3f}')} | "
+                   f"{fmt(r.get('brier_min_fde'))} |")
   return "\n".join(lines) + "\n"
 
 

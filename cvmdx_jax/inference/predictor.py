@@ -8,12 +8,19 @@ Scenarios whose uncertainty delta exceeds the largest delta of the tokeniser's t
 split are flagged (`PredictorOutput.out_of_distribution`) and reported with an
 `OutOfDistributionWarning`: their prediction extrapolates beyond the training data.
 
+Inputs are checked against the highD reader's bounds (`check_inputs`): a seed outside
+[0, 2**32), an ego absent at t0, |psi0| > pi or v0 above the reader's speed bound is a
+ValueError naming the scenario and field; an ego velocity at t0 that the reader would have
+refused by its components (against the road direction, or laterally beyond 20 m/s) is an
+`UnusualScenarioWarning`.
+
 One jitted call per chunk goes from observed scenarios to tokens, uncertainty,
 guided DDIM samples, VMM trajectories and GMM/BIC hypotheses; it is the only jit on the
 path (the functions it calls are plain, jittable code) and compiles once per chunk
 shape. Chunks are split over all visible devices (`jax.sharding`); the parameters are
 replicated once, when the `Predictor` is made. Scenario i always draws its noise from
-`fold_in(key(seed), i)`, so results do not depend on the chunk size or device count.
+`fold_in(key(seed), i)`, so results do not depend on the chunk size or device count, to
+float rounding (chunks of other shapes compile to other kernels; ~1e-5 m).
 """
 
 import dataclasses
@@ -27,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from cvmdx_jax import ego_motion, sharding
+from cvmdx_jax.data import highd
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference.sampling import Prediction, SamplingConfig, predict_batch
@@ -43,7 +51,60 @@ class OutOfDistributionWarning(UserWarning):
   """Some scenarios lie beyond the tokeniser's training range (delta above its maximum)."""
 
 
+class UnusualScenarioWarning(UserWarning):
+  """Some scenarios hold an ego state at t0 that the highD reader would not produce."""
+
+
 INPUT_FIELDS = ("xi", "mask", "v0", "psi0")  # the Scenarios fields a prediction reads
+# The reader's bounds on the ego velocity at t0 (road frame, m/s): x along travel in
+# [-MAX_DIRECTION_SLACK, 100], |y| <= 20; v0 = |velocity| <= hypot(100, 20).
+_VX = (-highd.MAX_DIRECTION_SLACK, highd.RANGES["tracks"]["xVelocity"][1])
+_VY = highd.RANGES["tracks"]["yVelocity"][1]
+MAX_V0 = math.hypot(_VX[1], _VY)
+_PI32 = float(np.float32(math.pi))  # pi as float32 holds it (slightly above math.pi)
+
+
+def _first(bad) -> int:
+  return int(np.flatnonzero(bad)[0])
+
+
+def check_inputs(scenarios: Scenarios, seed) -> None:
+  """Checks a `Predictor` call's inputs.
+
+  Raises:
+    ValueError: `seed` not an int in [0, 2**32) (bools refused; `jax.random.key` would
+      wrap larger ones); a field of `INPUT_FIELDS` of the wrong shape or not finite, or
+      M = 0 (`Scenarios.validate`); for the first such scenario: the ego absent at t0
+      (field 'mask', [:, 0, -1]), |psi0| > pi, v0 < 0 or v0 > MAX_V0 m/s.
+  Warns:
+    UnusualScenarioWarning: ego velocity at t0 with an along-road component below
+      -MAX_DIRECTION_SLACK m/s or a lateral one beyond 20 m/s (the reader refuses such rows;
+      the model never saw them); names the first such scenario.
+  """
+  if not isinstance(seed, (int, np.integer)) or isinstance(seed, (bool, np.bool_)):
+    raise ValueError(f"seed={seed!r}: expected an int in [0, 2**32)")
+  if not 0 <= seed < 2**32:
+    raise ValueError(f"seed={seed}: must be in [0, 2**32)")
+  scenarios.validate(fields=INPUT_FIELDS, dtypes=False, allow_empty=False)
+  mask, v0, psi0 = (np.asarray(scenarios.mask), np.asarray(scenarios.v0, np.float64),
+                    np.asarray(scenarios.psi0, np.float64))
+  if not mask[:, 0, -1].all():
+    raise ValueError(f"scenarios: field 'mask' marks the ego absent at t0 (mask[i, 0, -1]), "
+                     f"scenario {_first(~mask[:, 0, -1])}")
+  for name, value, bad, bound in (("psi0", psi0, np.abs(psi0) > _PI32, "|psi0| <= pi rad"),
+                                  ("v0", v0, v0 > MAX_V0, f"v0 <= {MAX_V0:.4g} m/s")):
+    if bad.any():
+      i = _first(bad)
+      raise ValueError(f"scenarios: field '{name}' = {value[i]:.6g} (scenario {i}) outside the "
+                       f"highD reader's range, {bound}")
+  vx, vy = v0 * np.cos(psi0), v0 * np.sin(psi0)
+  odd = (vx < _VX[0]) | (np.abs(vy) > _VY)
+  if odd.any():
+    i = _first(odd)
+    warnings.warn(f"{int(odd.sum())} scenarios have an ego velocity at t0 the highD reader "
+                  f"refuses (along the road >= {_VX[0]:g} m/s, |lateral| <= {_VY:g} m/s): "
+                  f"first scenario {i}, v0={v0[i]:.4g} m/s, psi0={psi0[i]:.4g} rad",
+                  UnusualScenarioWarning, stacklevel=3)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,13 +193,13 @@ class Predictor:
                delta_limit=float(np.max(train.delta)))
 
   def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
-    """Predicts every scenario; see the module docstring."""
-    scenarios.validate(fields=INPUT_FIELDS, dtypes=False, allow_empty=False)
+    """Predicts every scenario; see the module docstring; inputs as `check_inputs`."""
+    check_inputs(scenarios, seed)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
     m = len(scenarios)
     chunk = min(chunk, -(-m // mesh.size) * mesh.size)
-    base = jax.random.key(seed)
+    base = jax.random.key(int(seed))
     schedule = cosine_schedule(self.denoiser.config.diffusion.num_steps)
     outputs = []
     for start in tqdm(range(0, m, chunk), desc="predict", unit="chunk", disable=m <= chunk):

@@ -1,4 +1,5 @@
-"""Motion hypotheses: scaling, PCA and GMM/BIC over sampled trajectories, in JAX."""
+"""Motion hypotheses over sampled trajectories, in JAX: scaling, PCA and GMM/BIC (the
+paper) or k-means at a fixed K (`HypothesisConfig.method`)."""
 
 from cvmdx_jax.multimodal.hypotheses import fit_hypotheses
 from cvmdx_jax.multimodal.hypotheses import HypothesisConfig

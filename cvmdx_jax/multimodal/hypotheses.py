@@ -1,11 +1,15 @@
-"""Motion hypotheses from N sampled trajectories per scenario (cVMDx Sec. III-C).
+"""Motion hypotheses from N sampled trajectories per scenario.
 
-Per scenario: scale x and y, flatten each trajectory, PCA to r dims, fit
+Two methods (`HypothesisConfig.method`). "bic", the paper's (cVMDx Sec. III-C), per
+scenario: scale x and y, flatten each trajectory, PCA to r dims, fit
 full-covariance GMMs with C = 1..c_max by EM, keep the C of lowest BIC, assign
 every sample to its most likely component, and report each hypothesis as the
 mean of its samples (in metres) with probability p(c) = share of samples.
 Everything is one jittable function, `vmap`-ped over scenarios and over C;
 nothing per scenario runs in Python and scikit-learn is not used.
+"kmeans" (beyond the paper; `kmeans`): always c_max hypotheses, the means of a k-means
+partition of the trajectories in metres, built to cover the true future (minFDE_K) where
+BIC keeps a single mode in most highway scenarios; p(c) = share of samples as well.
 
 Hypothesis slots are ordered by probability, descending (ties keep the lower
 component index), so slot 0 is the most likely hypothesis and slots
@@ -13,13 +17,18 @@ component index), so slot 0 is the most likely hypothesis and slots
 """
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.multimodal import gmm
+from cvmdx_jax.multimodal import kmeans
 from cvmdx_jax.multimodal import pca
 from cvmdx_jax.multimodal import scaling
+
+METHODS = ("bic", "kmeans")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +36,10 @@ class HypothesisConfig:
   """Static settings of the hypotheses stage (hashable, static under jit).
 
   Attributes:
-    c_max: largest number of components tried (C = 1..c_max).
+    method: "bic" (the paper's PCA + GMM + BIC over C = 1..c_max; the fields from
+      scaling to em_iters apply) or "kmeans" (k-means with K = c_max over the
+      trajectories; kmeans_iters and endpoint_weight apply).
+    c_max: largest number of components tried (C = 1..c_max); K of "kmeans".
     scaling: 'physical' (x / x_scale, y / y_scale; default) or 'minmax' (the
       paper's literal per-scenario min-max recipe; over-selects with small
       floors, see BUILD_NOTES.md).
@@ -41,8 +53,12 @@ class HypothesisConfig:
       float32 with tiny floors) gets BIC +inf and is never selected.
     em_iters: EM iterations per fit (fixed; no early stop). 5 to 60 select
       the same C on the benchmark sets; 30 leaves margin for harder ones.
+    kmeans_iters: Lloyd steps of "kmeans" (fixed; no early stop).
+    endpoint_weight: weight of the final step in the k-means distance, in [0, 1]
+      (`kmeans.step_weights`; 0 = mean squared displacement over all steps).
   """
 
+  method: str = "bic"
   c_max: int = 3
   scaling: str = "physical"
   x_scale: float = 180.0
@@ -50,22 +66,20 @@ class HypothesisConfig:
   pca_dim: int = 2
   reg_covar: float = 1e-2
   em_iters: int = 30
+  kmeans_iters: int = 10
+  endpoint_weight: float = 0.0
+
+  RANGES: ClassVar = {"c_max": POSITIVE, "x_scale": POSITIVE, "y_scale": POSITIVE,
+                      "pca_dim": POSITIVE, "reg_covar": POSITIVE, "em_iters": NON_NEGATIVE,
+                      "kmeans_iters": NON_NEGATIVE, "endpoint_weight": FRACTION}
 
   def __post_init__(self):
-    if self.c_max < 1:
-      raise ValueError(f"HypothesisConfig.c_max must be >= 1, got {self.c_max}")
+    if self.method not in METHODS:
+      raise ValueError(f"HypothesisConfig.method must be one of {METHODS}, got {self.method!r}")
     if self.scaling not in scaling.SCALINGS:
       raise ValueError(
           f"HypothesisConfig.scaling must be one of {scaling.SCALINGS}, got {self.scaling!r}")
-    if self.x_scale <= 0 or self.y_scale <= 0:
-      raise ValueError("HypothesisConfig.x_scale and y_scale must be > 0, got "
-                       f"{self.x_scale}, {self.y_scale}")
-    if self.pca_dim < 1:
-      raise ValueError(f"HypothesisConfig.pca_dim must be >= 1, got {self.pca_dim}")
-    if self.reg_covar <= 0:
-      raise ValueError(f"HypothesisConfig.reg_covar must be > 0, got {self.reg_covar}")
-    if self.em_iters < 0:
-      raise ValueError(f"HypothesisConfig.em_iters must be >= 0, got {self.em_iters}")
+    check_ranges(self, self.RANGES)
 
 
 @jax.tree_util.register_dataclass
@@ -76,13 +90,14 @@ class Hypotheses:
   Attributes:
     num_modes: (B,) int, number of non-empty hypotheses (slots 0..num_modes-1).
       Equals num_components unless a fitted component attracts no sample.
-    num_components: (B,) int, the C in 1..c_max of lowest BIC.
+    num_components: (B,) int, the C in 1..c_max of lowest BIC; c_max for "kmeans".
     labels: (B, N) int in [0, num_modes), the hypothesis of each sample.
     means: (B, c_max, T, 2) mean trajectory of each hypothesis's samples, in
       the input's metres; 0 for empty slots.
     probs: (B, c_max) share of samples per hypothesis, descending, 0 for
       empty slots, summing to 1.
-    bic: (B, c_max) BIC of the fit with C = 1..c_max (+inf if non-finite).
+    bic: (B, c_max) BIC of the fit with C = 1..c_max (+inf if non-finite); NaN for
+      "kmeans", which fits no mixture.
   """
 
   num_modes: jax.Array
@@ -107,8 +122,23 @@ def embed(trajectories: jax.Array, config: HypothesisConfig) -> jax.Array:
   return pca.project(scaled.reshape(scaled.shape[:2] + (-1,)), config.pca_dim)
 
 
+def _group(component, trajectories, num_slots: int):
+  """Slots ordered by size from the (N,) group of each sample: (num_modes, labels,
+  means (num_slots, T, 2), probs (num_slots,)), see `Hypotheses`."""
+  counts = jnp.sum(jax.nn.one_hot(component, num_slots, dtype=jnp.int32), axis=0)
+  order = jnp.argsort(-counts, stable=True)  # slot -> component
+  rank = jnp.argsort(order)  # component -> slot
+  labels = rank[component]
+  counts = counts[order]
+  one_hot = jax.nn.one_hot(labels, num_slots, dtype=trajectories.dtype)  # (N, num_slots)
+  sums = jnp.einsum("nk,ntd->ktd", one_hot, trajectories)
+  means = sums / jnp.maximum(counts, 1).astype(trajectories.dtype)[:, None, None]
+  return (jnp.sum(counts > 0).astype(jnp.int32), labels.astype(jnp.int32), means,
+          counts.astype(trajectories.dtype) / component.shape[0])
+
+
 def _select_one(points, trajectories, config: HypothesisConfig):
-  """Hypotheses of one scenario from its (N, r) points and (N, T, 2) samples."""
+  """BIC hypotheses of one scenario from its (N, r) points and (N, T, 2) samples."""
   num_points, dim = points.shape
   c_max = config.c_max
   candidates = jnp.arange(1, c_max + 1)
@@ -117,21 +147,19 @@ def _select_one(points, trajectories, config: HypothesisConfig):
   bic = gmm.bic(fits.log_likelihood, candidates, dim, num_points)
   best = jnp.argmin(bic)
   component = jnp.argmax(fits.responsibilities[best], axis=-1)  # (N,)
-  counts = jnp.sum(jax.nn.one_hot(component, c_max, dtype=jnp.int32), axis=0)
-  order = jnp.argsort(-counts, stable=True)  # slot -> component
-  rank = jnp.argsort(order)  # component -> slot
-  labels = rank[component]
-  counts = counts[order]
-  one_hot = jax.nn.one_hot(labels, c_max, dtype=trajectories.dtype)  # (N, c_max)
-  sums = jnp.einsum("nk,ntd->ktd", one_hot, trajectories)
-  means = sums / jnp.maximum(counts, 1).astype(trajectories.dtype)[:, None, None]
-  return Hypotheses(
-      num_modes=jnp.sum(counts > 0).astype(jnp.int32),
-      num_components=(best + 1).astype(jnp.int32),
-      labels=labels.astype(jnp.int32),
-      means=means,
-      probs=counts.astype(trajectories.dtype) / num_points,
-      bic=bic)
+  num_modes, labels, means, probs = _group(component, trajectories, c_max)
+  return Hypotheses(num_modes=num_modes, num_components=(best + 1).astype(jnp.int32),
+                    labels=labels, means=means, probs=probs, bic=bic)
+
+
+def _kmeans_one(trajectories, config: HypothesisConfig):
+  """k-means hypotheses of one scenario from its (N, T, 2) samples."""
+  points = kmeans.features(trajectories, config.endpoint_weight)
+  _, component = kmeans.fit(points, config.c_max, config.kmeans_iters)
+  num_modes, labels, means, probs = _group(component, trajectories, config.c_max)
+  return Hypotheses(num_modes=num_modes, num_components=jnp.int32(config.c_max),
+                    labels=labels, means=means, probs=probs,
+                    bic=jnp.full((config.c_max,), jnp.nan, trajectories.dtype))
 
 
 def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
@@ -151,7 +179,8 @@ def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
 
   Raises:
     ValueError: wrong shape, non-float input, or `c_max` that contradicts
-      `config.c_max` or exceeds N.
+      `config.c_max` or exceeds N with method "bic" ("kmeans" leaves the surplus
+      slots empty).
   """
   if config is None:
     config = HypothesisConfig() if c_max is None else HypothesisConfig(c_max=c_max)
@@ -163,6 +192,8 @@ def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
         f"fit_hypotheses: trajectories must be (B, N, T, 2), got {trajectories.shape}")
   if not jnp.issubdtype(trajectories.dtype, jnp.floating):
     raise ValueError(f"fit_hypotheses: trajectories must be floating, got {trajectories.dtype}")
+  if config.method == "kmeans":
+    return jax.vmap(lambda t: _kmeans_one(t, config))(trajectories)
   if config.c_max > trajectories.shape[1]:
     raise ValueError(
         f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples")

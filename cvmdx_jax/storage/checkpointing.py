@@ -9,7 +9,11 @@ cause (no checkpoint, other fingerprint, other shapes, garbled files) is raised 
 step, `<step>/checksums.json` records the sha256 of every file it wrote (the package's one
 checksum scheme, `storage.checksums`); `load` verifies all of them first, so a flipped byte
 anywhere in a step, even one orbax still decodes, is refused naming the file. orbax's INFO
-logging is silenced while orbax runs (`_quiet_orbax`), not for the whole process.
+logging is silenced while orbax runs (`_quiet_orbax`), not for the whole process; during a
+save its warnings and errors are held back, re-logged if the save succeeds and dropped if it
+fails (the exception, passed on, says what went wrong). A failed save removes orbax's
+temporary directories (`*.orbax-checkpoint-tmp*`), and a writable `Checkpoints` removes any
+left by a killed process when it opens its root (callers hold the workdir lock by then).
 """
 
 import contextlib
@@ -29,6 +33,7 @@ from cvmdx_jax.storage import checksums, identity
 # step directory without it was not finished by orbax (or was tampered with).
 _COMMIT_MARKER = "commit_success.txt"
 _STATE = "state"  # the checkpointable (subdirectory) that holds the state pytree
+_TMP_MARK = ".orbax-checkpoint-tmp"  # in the name of every directory orbax has not finished
 
 
 class CheckpointMismatchError(ValueError):
@@ -36,21 +41,44 @@ class CheckpointMismatchError(ValueError):
 
 
 class _QuietOrbax(logging.Filter):
-  """Drops orbax's INFO/DEBUG records from the absl logger; warnings still pass."""
+  """Drops orbax's INFO/DEBUG records from the absl logger; warnings and errors pass, or,
+  with a `held` list, are appended to it instead."""
+
+  def __init__(self, held: list | None = None):
+    super().__init__()
+    self.held = held
 
   def filter(self, record: logging.LogRecord) -> bool:
-    return record.levelno >= logging.WARNING or "orbax" not in record.pathname
+    if "orbax" not in record.pathname:
+      return True
+    if record.levelno < logging.WARNING:
+      return False
+    if self.held is None:
+      return True
+    self.held.append(record)
+    return False
 
 
 @contextlib.contextmanager
-def _quiet_orbax():
-  """Installs `_QuietOrbax` on the absl logger for the duration of the block."""
-  logger, quiet = logging.getLogger("absl"), _QuietOrbax()
+def _quiet_orbax(held: list | None = None):
+  """Installs `_QuietOrbax(held)` on the absl logger for the duration of the block."""
+  logger, quiet = logging.getLogger("absl"), _QuietOrbax(held)
   logger.addFilter(quiet)
   try:
     yield
   finally:
     logger.removeFilter(quiet)
+
+
+@contextlib.contextmanager
+def _holding_orbax_logs():
+  """`_quiet_orbax` that holds orbax's warnings and errors back: re-logged when the block
+  succeeds, dropped when it raises (the exception says what went wrong)."""
+  held = []
+  with _quiet_orbax(held):
+    yield
+  for record in held:
+    logging.getLogger("absl").handle(record)
 
 
 def _path_key(path: tuple[Any, ...]) -> str:
@@ -96,6 +124,13 @@ def check_structure(saved_meta: Any, abstract_state: Any, where: str,
                                      else ""))
 
 
+def _remove_temporaries(root: Path) -> None:
+  """Deletes orbax's unfinished directories directly under `root` (process 0 only)."""
+  if jax.process_index() == 0 and root.is_dir():
+    for p in root.glob(f"*{_TMP_MARK}*"):
+      shutil.rmtree(p, ignore_errors=True)
+
+
 def _complete_steps(root: Path) -> tuple[list[int], list[Path]]:
   """(sorted steps with a commit marker, step directories without one)."""
   done, partial = [], []
@@ -116,11 +151,12 @@ class Checkpoints:
                writable: bool = True):
     self.root = Path(root).absolute()  # orbax requires absolute paths
     self._steps, partial = _complete_steps(self.root)
-    self._ckptr = None
+    self._ckptr, self._failed = None, False
     if not writable:
       return
     for p in partial if jax.process_index() == 0 else ():  # one process cleans up
       shutil.rmtree(p)
+    _remove_temporaries(self.root)
     policy = ocp.training.preservation_policies
     try:
       with _quiet_orbax():
@@ -136,9 +172,14 @@ class Checkpoints:
     return self
 
   def __exit__(self, *exc) -> None:
-    if self._ckptr is not None:
-      with _quiet_orbax():
+    if self._ckptr is None:
+      return
+    try:
+      with _holding_orbax_logs():
         self._ckptr.close()
+    except Exception:
+      if not self._failed:  # orbax raises a failed save's exception again on closing
+        raise
 
   @property
   def latest_step(self) -> int | None:
@@ -146,14 +187,23 @@ class Checkpoints:
     return self._steps[-1] if self._steps else None
 
   def save(self, step: int, state: Any, metadata: Any) -> None:
-    """Writes `state` (a pytree of arrays) and JSON `metadata` as `step`; blocks until done."""
+    """Writes `state` (a pytree of arrays) and JSON `metadata` as `step`; blocks until done.
+
+    On failure the exception is passed on, orbax's log records of the save are dropped and
+    its temporary directories removed; earlier steps are untouched.
+    """
     if self._ckptr is None:
       raise ValueError(f"Checkpoints({self.root}) was opened read-only")
-    with _quiet_orbax():
-      self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
-                       custom_metadata={"cvmdx": identity.to_json(metadata,
-                                                                   "checkpoint metadata")})
-      self._ckptr.wait()
+    custom = {"cvmdx": identity.to_json(metadata, "checkpoint metadata")}
+    try:
+      with _holding_orbax_logs():
+        self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
+                         custom_metadata=custom)
+        self._ckptr.wait()
+    except BaseException:
+      self._failed = True
+      _remove_temporaries(self.root)
+      raise
     if jax.process_index() == 0:  # orbax has committed every process's files
       checksums.record_tree(self.root / str(step))
     self._steps = _complete_steps(self.root)[0]

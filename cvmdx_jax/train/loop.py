@@ -147,6 +147,8 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
   Raises:
     ValueError: bad arguments (e.g. batch_size not divisible by the device count, or
       the workdir not held).
+    sharding.ProcessMismatchError: (in every process, before anything is written) a
+      process's fingerprint, loop settings, schedule or data differ from process 0's.
     CheckpointMismatchError: the workdir's checkpoint belongs to another run or is broken.
     TrainingError: a non-finite loss or grad_norm (names the global step and epoch).
   """
@@ -161,6 +163,10 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
   abstract = _abstract_state(init_fn, mesh)
   run_meta = {"fingerprint": identity.to_json(fingerprint),
               "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m}}
+  if jax.process_count() > 1:  # every process must run the same job on the same data
+    sharding.check_same_run({**run_meta, "data": identity.content_id(data),
+                             "schedule": [num_epochs, checkpoint_every, keep]},
+                            f"run (workdir {workdir})")
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   steps_per_epoch = -(-m // batch_size)

@@ -112,11 +112,13 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   path = tmp_path / "model000100.pt"
   fx.write_pt(path, official, monkeypatch)
   workdir = tmp_path / "run"
+  (workdir / ".import.killed" / "checkpoints").mkdir(parents=True)  # an import killed -9
   cmd = [sys.executable, "experiments/import_official.py", f"--checkpoint={path}",
          f"--workdir={workdir}"]
   env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
+  assert not list(workdir.glob(".import.*"))
   with warnings.catch_warnings():
     warnings.simplefilter("error")
     denoiser = loaders.load_denoiser(workdir)

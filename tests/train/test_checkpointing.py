@@ -120,3 +120,42 @@ def test_relative_root_works(tmp_path, monkeypatch):
   restored, _ = checkpointing.Checkpoints("runs/x/checkpoints", writable=False).load(
       1, _abstract(state))
   np.testing.assert_array_equal(restored["params"]["w"], state["params"]["w"])
+
+
+def _orbax_records(caplog):
+  return [r for r in caplog.records if "orbax" in r.pathname and r.levelno >= logging.WARNING]
+
+
+def test_a_failed_save_leaves_no_temporary_directory_and_no_orbax_errors(tmp_path, monkeypatch,
+                                                                          caplog):
+  from orbax.checkpoint._src.path import atomicity  # the rename that commits a step
+
+  state = _state()
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    ckpts.save(1, state, {"q": 1})
+
+    async def disk_full(self):
+      raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(atomicity.AtomicRenameTemporaryPath, "finalize", disk_full)
+    caplog.set_level(logging.WARNING)
+    with pytest.raises(Exception, match="No space left on device"):
+      ckpts.save(2, state, {"q": 2})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
+    assert _orbax_records(caplog) == []
+    assert ckpts.latest_step == 1
+  restored, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(1, _abstract(state))
+  assert meta == {"q": 1}
+
+
+def test_opening_for_writing_removes_stale_temporary_directories(tmp_path):
+  stale = tmp_path / "4.orbax-checkpoint-tmp-1733000000"
+  (stale / "state").mkdir(parents=True)
+  (stale / "state" / "x").write_bytes(b"half")
+  keep = tmp_path / "notes.orbax"  # not orbax's temporary mark: left alone
+  keep.write_text("mine")
+  checkpointing.Checkpoints(tmp_path, writable=False)
+  assert stale.is_dir()
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    assert ckpts.latest_step is None
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.orbax"]

@@ -24,15 +24,18 @@ def _free_port() -> int:
     return s.getsockname()[1]
 
 
-def _launch(workdir, processes: int, devices: int = 1, **args) -> list[subprocess.Popen]:
-  """Starts one run of toy_job.py as `processes` processes with `devices` CPU devices each."""
+def _launch(workdir, processes: int, devices: int = 1, own=(), **args) -> list[subprocess.Popen]:
+  """Starts one run of toy_job.py as `processes` processes with `devices` CPU devices each;
+  `own[i]` (a dict) adds arguments of process i."""
   env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
              JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
   if processes > 1:
     env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}",
                JAX_NUM_PROCESSES=str(processes))
   cmd = [sys.executable, str(JOB), f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
-  return [subprocess.Popen(cmd, env={**env, "JAX_PROCESS_ID": str(i)}, text=True,
+  own = list(own) + [{}] * (processes - len(own))
+  return [subprocess.Popen(cmd + [f"--{k}={v}" for k, v in own[i].items()],
+                           env={**env, "JAX_PROCESS_ID": str(i)}, text=True,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
           for i in range(processes)]
 
@@ -92,6 +95,18 @@ def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   assert f"pid {holder.pid} " in done[0][2]
   assert "locked by another process" in done[1][2]
   assert sorted(p.name for p in tmp_path.iterdir()) == [".lock"]
+
+
+@pytest.mark.slow  # ~56 s on the shared 2-core machine; test_sharding simulates it fast
+def test_processes_started_with_other_settings_all_stop_naming_the_keys(tmp_path):
+  done = _finish(_launch(tmp_path, 2, epochs=1, own=[{}, {"seed": 1, "m": 40}]))
+  assert [code for code, _, _ in done] == [2, 2]
+  for _, _, err in done:
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("error: process 1 of 2 was started with another run"), err[-2000:]
+    assert "loop.seed: process 1 1, process 0 0" in line
+    assert "loop.num_examples: process 1 40, process 0 36" in line and "data: process 1" in line
+  assert not (tmp_path / "checkpoints").exists() and not (tmp_path / "metrics.jsonl").exists()
 
 
 @pytest.mark.slow

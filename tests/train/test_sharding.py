@@ -78,3 +78,37 @@ def test_two_devices_split_the_batch_and_refuse_odd_sizes():
   out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
                        timeout=120, cwd=REPO)
   assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
+
+
+def _fake_processes(monkeypatch, fingerprints):
+  """Makes `check_same_run` see len(fingerprints) processes, this one being process 0."""
+  from jax.experimental import multihost_utils
+  import json
+  payloads = [np.frombuffer(json.dumps(f, sort_keys=True).encode(), np.uint8)
+              for f in fingerprints]
+
+  def allgather(x):
+    if np.ndim(x) == 0:
+      return np.array([len(p) for p in payloads], np.int32)
+    return np.stack([np.pad(p, (0, len(x) - len(p))) for p in payloads])
+
+  monkeypatch.setattr(jax, "process_count", lambda: len(fingerprints))
+  monkeypatch.setattr(multihost_utils, "process_allgather", allgather)
+
+
+def test_same_run_in_every_process_passes(monkeypatch):
+  run = {"fingerprint": {"model": {"channels": [8, 16]}}, "loop": {"seed": 0}}
+  _fake_processes(monkeypatch, [run, run, run])
+  sharding.check_same_run(run)
+
+
+def test_another_run_in_one_process_is_refused_naming_process_and_keys(monkeypatch):
+  run = {"fingerprint": {"model": {"channels": [8, 16]}}, "loop": {"seed": 0}}
+  other = {"fingerprint": {"model": {"channels": [8, 32]}}, "loop": {"seed": 1, "extra": 2}}
+  _fake_processes(monkeypatch, [run, run, other])
+  with pytest.raises(sharding.ProcessMismatchError) as e:
+    sharding.check_same_run(run, "run (workdir w)")
+  assert str(e.value) == (
+      "process 2 of 3 was started with another run (workdir w) than process 0; differing "
+      "keys: fingerprint.model.channels: process 2 [8, 32], process 0 [8, 16]; loop.extra: process 2 "
+      "2, process 0 '<absent>'; loop.seed: process 2 1, process 0 0; nothing was written")
