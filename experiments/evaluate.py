@@ -4,6 +4,8 @@
       --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
       --workdir=runs/demo/eval
 `--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.
+`--baseline_dir=runs/demo/baseline` adds the rows of a trained multiple-choice baseline
+(experiments/train_baseline.py, on the same tokeniser).
 """
 
 from absl import app, flags
@@ -16,6 +18,8 @@ _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory of the report.")
+_BASELINE = flags.DEFINE_string("baseline_dir", None, "Trained multiple-choice baseline run "
+                                "whose rows join the report (none: no rows).")
 _SPLIT = flags.DEFINE_string("split", "test", "Split to evaluate.")
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_bound=2**32 - 1)
 _MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 = all).",
@@ -30,7 +34,7 @@ _SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
 _STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.",
                               lower_bound=1)
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
-cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir")
+cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir", "baseline_dir")
 cli.output_dirs("workdir")
 
 
@@ -42,7 +46,7 @@ def main(argv):
   report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
              data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
              seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value,
-             sampling_overrides=overrides)
+             sampling_overrides=overrides, baseline_dir=_BASELINE.value)
   print(open(f"{_WORKDIR.value}/results.md").read())
 
 

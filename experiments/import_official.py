@@ -50,7 +50,7 @@ def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict)
   """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: config.json
   and checkpoints/1 holding {params, ema_params} (both the imported weights) and step 0,
   with metadata {"fingerprint": fingerprint}."""
-  layout.write_diffusion_dir(workdir, config)
+  layout.write_run_config(workdir, config)
   state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
            "step": jnp.zeros((), jnp.int32)}
   with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=1) as ckpts:

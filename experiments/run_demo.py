@@ -1,15 +1,17 @@
-"""The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion -> evaluation report.
+"""The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion (+ learned baseline) -> report.
 
   make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
-Writes runs/demo/{data, tokenizer, diffusion}/ and two reports in the same schema: the
+Writes runs/demo/{data, tokenizer, diffusion, baseline}/ and two reports in the same
+schema, each with the rows of the multiple-choice MLP baseline trained on the same train
+split and tokens (`configs/baseline.py`, at most 90 s of the demo): the
 test split's (metrics.json, results.md, predictions_<class>.png, kl_vs_usage.png) and
 the held-out road's (metrics_test_ood.json, results_test_ood.md, *_test_ood.png; the
 single-DDPM baseline there on at most `OOD_DDPM_SCENARIOS`). A dataset without a
 test_ood split (highD, cvmd_mat) gets the test report only, with a printed note. Every
 stage resumes: a rerun reuses the dataset cache and the finished checkpoints. CPU-sized
-presets: dataset `:small`, tokeniser `:demo`, diffusion `:demo` (change them with the
-flags below).
+presets: dataset `:small`, tokeniser `:demo`, diffusion `:demo`, baseline `:demo` (change
+them with the flags below).
 """
 
 import time
@@ -17,13 +19,15 @@ from pathlib import Path
 
 from absl import app, flags
 
+from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.train import baseline as baseline_train
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -31,6 +35,7 @@ _WORKDIR = flags.DEFINE_string("workdir", "runs/demo", "Where everything is writ
 _DATA = flags.DEFINE_string("data_preset", "small", "configs/dataset.py preset.")
 _TOKENIZER = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.py preset.")
 _DIFFUSION = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
+_BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 30, "Scenarios of the single-DDPM baseline "
                              "(1,000 guided steps: ~1.4 s each on 2 cores).",
                              lower_bound=0)
@@ -38,6 +43,7 @@ cli.output_dirs("workdir")
 cli.presets("data_preset", dataset_config.get_config)
 cli.presets("tokenizer_preset", tokenizer_config.get_config)
 cli.presets("diffusion_preset", diffusion_config.get_config)
+cli.presets("baseline_preset", baseline_config.get_config)
 OOD_DDPM_SCENARIOS = 30  # cap of the single-DDPM baseline on test_ood (demo time budget)
 
 
@@ -50,28 +56,35 @@ def main(argv):
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   root = Path(_WORKDIR.value)
   data_dir, tok_dir, diff_dir = root / "data", root / "tokenizer", root / "diffusion"
+  base_dir = root / "baseline"
   start = time.perf_counter()
 
-  _stage(f"1/4 dataset (SUMO, preset {_DATA.value}) -> {data_dir}", start)
+  _stage(f"1/5 dataset (SUMO, preset {_DATA.value}) -> {data_dir}", start)
   splits = dataset_lib.build(dataset_config.get_config(_DATA.value), data_dir)
   print({name: len(s) for name, s in splits.items()})
 
-  _stage(f"2/4 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
+  _stage(f"2/5 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
   tok_cfg = tokenizer_config.get_config(_TOKENIZER.value)
   tok_cfg.data_dir = str(data_dir)
   tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
-  _stage(f"3/4 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
+  _stage(f"3/5 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
   diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
 
-  _stage(f"4/4 evaluation on the test and test_ood splits -> {root}", start)
+  _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
+  base_cfg = baseline_config.get_config(_BASELINE.value)
+  base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
+  baseline_train.train(BaselineConfig.from_config(base_cfg), base_dir)
+
+  _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
   for split in report.run_test_and_ood(tokenizer_dir=tok_dir, diffusion_dir=diff_dir,
                                        data_dir=data_dir, workdir=root,
                                        ddpm_scenarios=_DDPM.value,
-                                       ood_ddpm_scenarios=min(_DDPM.value, OOD_DDPM_SCENARIOS)):
+                                       ood_ddpm_scenarios=min(_DDPM.value, OOD_DDPM_SCENARIOS),
+                                       baseline_dir=base_dir):
     suffix = report.split_suffix(split)
     files += [f"{root}/metrics{suffix}.json", f"{root}/results{suffix}.md"]
     print(f"\n{split}:\n" + (root / f"results{suffix}.md").read_text())

@@ -47,6 +47,7 @@ TOK = "--config=configs/tokenizer.py:tiny"
 DIFF = "--config=configs/diffusion.py:tiny"
 DATA = "--config=configs/dataset.py:tiny"
 EVAL = "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty --data_dir={T}/empty"
+BASE = "--config=configs/baseline.py:tiny"
 LONG = "n" * 300  # a path component longer than any file system allows (ENAMETOOLONG)
 CASES = [
     ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --nosuch=1", "'nosuch'"),
@@ -76,6 +77,7 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{NEW}} --sampler=euler", "--sampler=euler"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --steps=0", "--steps=0"),
     ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --baseline_dir={{T}}/nosuch", "--baseline_dir="),
     ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),
     ("evaluate", f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
      "--data_dir={T}/empty --workdir={NEW}", "File name too long"),
@@ -102,6 +104,15 @@ CASES = [
     ("run_demo", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
     ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),
+    ("train_baseline", f"{BASE} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("train_baseline", "--config=configs/baseline.py:nosuch --workdir={NEW}",
+     "--config=configs/baseline.py:nosuch"),
+    ("train_baseline", f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.train.end_lr_fraction=2",
+     "--config.train.end_lr_fraction=2"),
+    ("train_baseline", f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.train.select_metric=accuracy",
+     "train.select_metric"),
     ("train_diffusion", f"{DIFF} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("train_diffusion", "--config=configs/diffusion.py:nosuch --workdir={NEW}",
      "--config=configs/diffusion.py:nosuch"),

@@ -13,23 +13,25 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 import pytest
 
+from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import ego_motion
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs import loaders as runs_lib
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.storage import atomic, checkpointing
-from cvmdx_jax.evaluation import report, scoring
+from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
-from cvmdx_jax.train import diffusion, tokenizer
+from cvmdx_jax.train import baseline, diffusion, tokenizer
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -94,6 +96,42 @@ def test_report_has_every_method_subset_and_figure(runs):
   assert saved["cv"]["all"]["num_scenarios"] == 30
   assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
   assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
+
+
+def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatch):
+  config = baseline_config.get_config("tiny")
+  config.data_dir, config.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
+  baseline.train(BaselineConfig.from_config(config), tmp_path / "baseline")
+  kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+            data_dir=runs / "data", max_scenarios=12, ddpm_scenarios=0)
+  report.run(**kw, workdir=tmp_path / "with", baseline_dir=tmp_path / "baseline")
+  report.run(**kw, workdir=tmp_path / "without")
+  with_, without = (json.loads((tmp_path / d / "metrics.json").read_text())
+                    for d in ("with", "without"))
+  assert set(with_) - set(without) == set(learned_baseline.METHODS)
+  for method in learned_baseline.METHODS:
+    assert set(with_[method]) == set(scoring.SUBSETS)
+    assert with_[method]["all"]["num_scenarios"] == 12
+  for subset in scoring.SUBSETS:  # best of K <= each single read-out
+    best = with_["mlp_best_of_k"][subset]
+    assert best["ade"] <= with_["mlp_most_likely"][subset]["ade"] + 1e-6
+    assert best["fde"] <= best["brier_min_fde"] <= best["fde"] + 1
+  for method in without:  # the baseline changes no other row
+    if method != "_meta":
+      assert with_[method] == without[method]
+  assert with_["_meta"]["baseline"]["epoch"] == runs_lib.load_baseline(tmp_path / "baseline").epoch
+  assert without["_meta"]["baseline"] is None
+  table = (tmp_path / "with" / "results.md").read_text()
+  assert "| MLP, 3 heads (WTA): best of K |" in table
+  # a baseline trained on another tokeniser's tokens is refused before anything is written
+  bundle = runs_lib.load_baseline(tmp_path / "baseline")
+  saved = bundle.fingerprint.to_dict()
+  other = dataclasses.replace(bundle, fingerprint=ml_collections.FrozenConfigDict(
+      {**saved, "tokenizer": {**saved["tokenizer"], "step": -1}}))
+  monkeypatch.setattr(runs_lib, "load_baseline", lambda _: other)
+  with pytest.raises(learned_baseline.IncompatibleBaselineError, match="step"):
+    report.run(**kw, workdir=tmp_path / "refused", baseline_dir=tmp_path / "baseline")
+  assert not (tmp_path / "refused").exists()
 
 
 def test_report_sampling_overrides_reach_the_predictor(runs):

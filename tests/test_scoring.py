@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.data.scenarios import Scenarios
-from cvmdx_jax.evaluation import scoring
+from cvmdx_jax.evaluation import learned_baseline, scoring
 from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal.hypotheses import Hypotheses
 
@@ -144,6 +144,28 @@ def test_markdown_tables_show_the_added_metrics():
   assert mean_row.split("|")[4].strip() == "1.00"  # final lon of a 1 m shift
   ood_row = next(line for line in text.splitlines() if line.startswith("| all |"))
   assert ood_row.split("|")[3].strip() == "33.3%"
+
+
+def test_learned_baseline_rows_by_hand():
+  """Most likely = the argmax-p head, mean = the p-weighted mean of the heads, best of K
+  over every head (also one whose probability underflowed to 0)."""
+  hyps, _, gt, labels = _hypothesis_fixture()
+  hyps[:, 2] = hyps[:, 0]  # three real heads per scenario
+  hyps[1, 2] = gt[1]  # lcr: a perfect head with p = 0
+  probs = np.array([[0.5, 0.5, 0.0], [0.9, 0.1, 0.0], [0.25, 0.25, 0.5]], np.float32)
+  errors = learned_baseline.errors(hyps, probs, gt, labels)
+  # kl: 0.5 (97, 4) + 0.5 (101, 0) = (99, 2); lcr: 0.9 (102, 0) + 0.1 (100, -2.5) =
+  # (101.8, -0.25); lcl: 0.75 (104, 3.5) + 0.25 (100, -1) = (103, 2.375)
+  np.testing.assert_allclose(errors["mlp_mean"]["fde"],
+                             [np.hypot(1, 2), np.hypot(1.8, 3.25), np.hypot(3, 1.125)],
+                             atol=1e-4)
+  # kl: a tie goes to the first head, (97, 4)
+  np.testing.assert_allclose(errors["mlp_most_likely"]["fde"], [5.0, np.hypot(2, 3.5), 4.0],
+                             atol=1e-4)
+  np.testing.assert_allclose(errors["mlp_best_of_k"]["fde"], [1.0, 0.0, 4.0], atol=1e-5)
+  # lcl: heads 0 and 2 tie at 4 m, the first (p = 0.25) is taken
+  np.testing.assert_allclose(errors["mlp_best_of_k"]["brier_min_fde"],
+                             [1.0 + 0.5**2, 0.0 + 1.0, 4.0 + 0.75**2], atol=1e-5)
 
 
 def test_calibration_by_hand():

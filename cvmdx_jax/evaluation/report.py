@@ -1,7 +1,8 @@
 """One evaluation run: predictions on a split, baselines, metrics.json, tables, figures.
 
 Writes into `workdir`: `metrics<suffix>.json` ({method: {subset: {metric: value}}},
-methods `scoring.METHODS`, subsets all / kl / lcr / lcl, metrics in `scoring`'s
+methods `scoring.METHODS` (and, given a trained baseline, `learned_baseline.METHODS`),
+subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
 `predictions_<class><suffix>.png` (Fig. 1 style, for the classes present),
 `kl_vs_usage<suffix>.png` (Fig. 3 style) and `reliability<suffix>.png` (calibration of
@@ -20,11 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import constants
+from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import atomic, checksums, locking
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
-from cvmdx_jax.evaluation import figures, scoring
+from cvmdx_jax.evaluation import figures, learned_baseline, scoring
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.inference.predictor import Predictor
 
@@ -45,7 +47,8 @@ def _sampling_meta(predictor: Predictor) -> dict:
 @locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
-        figures_per_class: int = 3, sampling_overrides=None, suffix: str = "") -> dict:
+        figures_per_class: int = 3, sampling_overrides=None, suffix: str = "",
+        baseline_dir=None) -> dict:
   """Evaluates a trained cVMDx on `split` of the dataset in `data_dir`.
 
   Args:
@@ -62,6 +65,9 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
       (e.g. {"sampler": "ddim", "steps": 10}).
     suffix: appended to every file name (`metrics<suffix>.json`, ...), so that several
       splits can be reported into one directory.
+    baseline_dir: a trained multiple-choice baseline (`cvmdx_jax.train.baseline`) whose
+      rows (`learned_baseline.METHODS`) join the report; it must have been trained on
+      this tokeniser's tokens (`learned_baseline.IncompatibleBaselineError`). None: no rows.
 
   Returns:
     The metrics dict written to metrics.json.
@@ -75,12 +81,17 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
   usage_tokens, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   workdir = Path(workdir)
+  baseline = None if baseline_dir is None else loaders.load_baseline(baseline_dir)
+  if baseline is not None:
+    learned_baseline.check_tokenizer(baseline, predictor.tokenizer, str(baseline_dir))
 
   out = predictor(scenarios, seed=seed)
   scoring.check_finite(out.prediction, scenarios, f"cVMDx on split {split}")
   gt = jnp.asarray(scenarios.future)
   errors = {**scoring.cvmdx_errors(out, gt, scenarios.label),
             **scoring.baseline_errors(scenarios)}
+  if baseline is not None:
+    errors.update(learned_baseline.scenario_errors(baseline, out.q, out.delta, scenarios))
   results = scoring.summarise(errors, scenarios.label)
   correlation = scoring.delta_rank_correlation(out.delta, errors["cvmdx_mean"]["ade"],
                                                scenarios.label)
@@ -122,6 +133,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
           "sampling": _sampling_meta(predictor),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
+          "baseline": None if baseline is None else {"dir": str(baseline_dir),
+                                                     "epoch": baseline.epoch},
           "kl_power_law_fit": fit, "reliability": diagram,
           "tokens_in_use_on_split": int(len(np.unique(out.q))),
           "out_of_distribution": {
@@ -144,7 +157,8 @@ def split_suffix(split: str) -> str:
 
 
 def run_test_and_ood(*, tokenizer_dir, diffusion_dir, data_dir, workdir, ddpm_scenarios: int,
-                     ood_ddpm_scenarios: int, seed: int = 0, max_scenarios: int = 0) -> dict:
+                     ood_ddpm_scenarios: int, seed: int = 0, max_scenarios: int = 0,
+                     baseline_dir=None) -> dict:
   """Reports on test (metrics.json, results.md, ...) and, where the dataset has the split,
   on test_ood (metrics_test_ood.json, results_test_ood.md, ...) into one `workdir`, in
   the same schema; without test_ood a note is printed. Arguments as in `run`, with
@@ -158,5 +172,5 @@ def run_test_and_ood(*, tokenizer_dir, diffusion_dir, data_dir, workdir, ddpm_sc
   return {split: run(tokenizer_dir=tokenizer_dir, diffusion_dir=diffusion_dir,
                      data_dir=data_dir, workdir=workdir, split=split, seed=seed,
                      max_scenarios=max_scenarios, ddpm_scenarios=ddpm,
-                     suffix=split_suffix(split))
+                     suffix=split_suffix(split), baseline_dir=baseline_dir)
           for split, ddpm in splits.items()}

@@ -38,6 +38,10 @@ METHOD_TITLES = {
     "cvmdx_mean": "cVMDx mean of N", "cvmdx_most_likely": "cVMDx most likely p(c)",
     "cvmdx_best_of_k": "cVMDx best of K (minADE_K / minFDE_K)", "cv": "Constant velocity",
     "ca": "Constant acceleration + yaw rate", "ddpm_single": "cVMD-style single DDPM sample",
+    # the learned baseline (`learned_baseline`), in reports given a --baseline_dir
+    "mlp_most_likely": "MLP, 3 heads (WTA): most likely",
+    "mlp_mean": "MLP, 3 heads (WTA): probability-weighted mean",
+    "mlp_best_of_k": "MLP, 3 heads (WTA): best of K",
 }
 TARGET_LANE_MIN_PROB = 0.2  # a hypothesis counts for target_lane_hit from this probability
 # Paper, Table II (highD): ADE / FDE@5s in metres.

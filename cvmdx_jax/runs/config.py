@@ -1,23 +1,26 @@
-"""The typed configs of the two trainers, built and checked once at the entry point.
+"""The typed configs of the trainers, built and checked once at the entry point.
 
     config = DiffusionConfig.from_config(configs.diffusion.get_config("demo"))
 
-`from_config` turns a ConfigDict of configs/tokenizer.py or configs/diffusion.py into a
+`from_config` turns a ConfigDict of configs/tokenizer.py, configs/diffusion.py or
+configs/baseline.py into a
 frozen dataclass (`config_dataclass.to_dataclass`); every field's range is checked by the
 dataclass that holds it (`ConfigFieldError` names the dotted field, e.g.
 "diffusion.class_weights"). Below the entry points only these dataclasses travel.
 A diffusion run stores its `DiffusionConfig` as `config.json` (`runs.layout`), with
-`model.num_tokens` set from the tokens it was trained on.
+`model.num_tokens` set from the tokens it was trained on; so does a baseline run its
+`BaselineConfig`.
 """
 
 import dataclasses
 from typing import Any, ClassVar
 
 from cvmdx_jax import ego_motion
-from cvmdx_jax.config_dataclass import (BELOW_ONE, NON_NEGATIVE, POSITIVE, SEED,
-                                        check_ranges, to_dataclass)
+from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
+                                        ConfigFieldError, check_ranges, to_dataclass)
 from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import quantizer as quantizer_lib
+from cvmdx_jax.models.multiple_choice import MultipleChoiceConfig
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models.scenario_encoder import EncoderConfig
 from cvmdx_jax.models.unet1d import UNetConfig
@@ -151,5 +154,88 @@ class DiffusionConfig:
 
   def with_tokens(self, num_tokens: int) -> "DiffusionConfig":
     """This config with the U-Net sized for `num_tokens` tokens (Q; token Q is null)."""
+    return dataclasses.replace(self, model=dataclasses.replace(self.model,
+                                                               num_tokens=num_tokens))
+
+
+# val read-outs of the baseline's `train.baseline.evaluate` the epoch can be chosen on
+# (lower is better)
+SELECT_METRICS = ("loss", "wta_ade", "min_ade", "min_fde", "ml_ade", "ml_fde", "mean_ade",
+                  "mean_fde")
+
+
+@dataclasses.dataclass(frozen=True)
+class BaselineTrainConfig(TrainConfig):
+  """The `train` section of the multiple-choice baseline: `TrainConfig` plus the AdamW
+  schedule and the val read-out that picks the epoch (configs/baseline.py documents the
+  fields)."""
+
+  batch_size: int = 256
+  num_epochs: int = 30
+  learning_rate: float = 2e-3
+  checkpoint_every: int = 10
+  keep: int = 1
+  warmup_steps: int = 100
+  end_lr_fraction: float = 0.01
+  weight_decay: float = 1e-4
+  select_metric: str = "min_ade"
+
+  RANGES: ClassVar = {**TrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
+                      "end_lr_fraction": FRACTION, "weight_decay": NON_NEGATIVE}
+
+  def __post_init__(self):
+    super().__post_init__()
+    if self.select_metric not in SELECT_METRICS:
+      raise ConfigFieldError("select_metric", self.select_metric,
+                             f"must be one of {SELECT_METRICS}")
+
+
+@dataclasses.dataclass(frozen=True)
+class WTALossConfig:
+  """The `loss` section of the baseline: weight of the mode cross-entropy beside the
+  winner's ADE (m)."""
+
+  cls_weight: float = 1.0
+
+  def __post_init__(self):
+    check_ranges(self, {"cls_weight": NON_NEGATIVE})
+
+
+@dataclasses.dataclass(frozen=True)
+class BaselineConfig:
+  """A multiple-choice baseline run (configs/baseline.py, `cvmdx_jax.train.baseline`).
+
+  Attributes:
+    data_dir: the dataset directory.
+    tokenizer_dir: the tokeniser run whose tokens q and delta it reads.
+    seed: init and example order.
+    model: the MLP; `num_tokens` is 0 until the trainer sets it to the tokens' Q
+      (`with_tokens`).
+    loss: `WTALossConfig`.
+    train: `BaselineTrainConfig`.
+  """
+
+  data_dir: str = "data/sumo"
+  tokenizer_dir: str = "runs/tokenizer"
+  seed: int = 0
+  model: MultipleChoiceConfig = MultipleChoiceConfig(num_tokens=0)
+  loss: WTALossConfig = WTALossConfig()
+  train: BaselineTrainConfig = BaselineTrainConfig()
+
+  def __post_init__(self):
+    _check_run(self)
+
+  @classmethod
+  def from_config(cls, config: Any) -> "BaselineConfig":
+    """The typed run config of a configs/baseline.py ConfigDict (or of a run's
+    config.json); ConfigFieldError or ValueError naming the field when one is bad."""
+    sections = dict(config.items())
+    model = dict(sections.pop("model").items())
+    model.setdefault("num_tokens", 0)
+    return to_dataclass(cls, sections, model=to_dataclass(MultipleChoiceConfig, model,
+                                                          where="model"))
+
+  def with_tokens(self, num_tokens: int) -> "BaselineConfig":
+    """This config with the MLP's token embedding sized for `num_tokens` tokens (Q)."""
     return dataclasses.replace(self, model=dataclasses.replace(self.model,
                                                                num_tokens=num_tokens))

@@ -1,8 +1,9 @@
-"""Fingerprints of runs: what a tokeniser or denoiser checkpoint belongs to.
+"""Fingerprints of runs: what a tokeniser, denoiser or baseline checkpoint belongs to.
 
 They are stored with every checkpoint and compared with `storage.identity.check` on
 resume, on loading, and when a denoiser is paired with a tokeniser
-(`inference.predictor.Predictor.load`).
+(`inference.predictor.Predictor.load`) or a baseline with a tokeniser
+(`evaluation.learned_baseline.check_tokenizer`).
 """
 
 import dataclasses
@@ -39,3 +40,15 @@ def diffusion(config, dataset_id: str, tokens_meta: dict) -> dict:
           "conditioning": {"name": d.conditioning, "features": ego_motion.NUM_FEATURES,
                            "residual_decay_s": list(d.residual_decay_s)},
           "class_weights": list(d.class_weights)}
+
+
+def baseline(config, dataset_id: str, tokens_meta: dict) -> dict:
+  """What a baseline checkpoint belongs to: the MLP (`config.model`, sized for the
+  tokens), the ego-motion features, the loss, the optimiser and its schedule, the dataset
+  and the tokeniser checkpoint. num_epochs is part of it: the cosine schedule spans the
+  whole run, so more epochs are another run, not a continuation."""
+  train = {k: v for k, v in dataclasses.asdict(config.train).items()
+           if k not in ("checkpoint_every", "keep")}
+  return {"model": dataclasses.asdict(config.model), "features": ego_motion.NUM_FEATURES,
+          "cls_weight": config.loss.cls_weight, "train": train, "dataset_id": dataset_id,
+          "tokenizer": tokenizer_checkpoint(tokens_meta)}

@@ -13,6 +13,12 @@ A diffusion run (`cvmdx_jax.train.diffusion`):
     <dir>/checkpoints/<epoch>/   train state {"step", "params", "ema_params", "opt_state"}
     <dir>/metrics.jsonl
 
+A baseline run (`cvmdx_jax.train.baseline`):
+
+    <dir>/config.json            its `runs.config.BaselineConfig` (model.num_tokens = Q)
+    <dir>/checkpoints/<epoch>/   train state {"params", "opt_state", "step", "val", "best"}
+    <dir>/metrics.jsonl          train loss and the val curve per epoch
+
 tokenizer.json, config.json and tokens/*.npz are checksummed (`storage.checksums`, one
 checksums.json per directory), and so is every file of a checkpoint step
 (`storage.checkpointing`). The trainers write these files only after the resumed
@@ -63,8 +69,9 @@ def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.Tok
                          indent=1, sort_keys=True)
 
 
-def write_diffusion_dir(workdir: str | os.PathLike, config) -> None:
-  """Writes <workdir>/config.json, the run's `DiffusionConfig` (process 0)."""
+def write_run_config(workdir: str | os.PathLike, config) -> None:
+  """Writes <workdir>/config.json, the run's `DiffusionConfig` or `BaselineConfig`
+  (process 0)."""
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   if sharding.is_primary():

@@ -1,7 +1,9 @@
-"""The inference loaders of run directories: a `TokenizerBundle` and a `Denoiser`.
+"""The inference loaders of run directories: a `TokenizerBundle`, a `Denoiser` and a
+`LearnedBaseline`.
 
-`load_tokenizer` and `load_denoiser` restore only what inference needs (the tokeniser's
-parameters and step, the denoiser's EMA parameters) into an abstract tree built from the
+`load_tokenizer`, `load_denoiser` and `load_baseline` restore only what inference needs
+(the tokeniser's parameters and step, the denoiser's EMA parameters, the baseline's
+val-chosen parameters) into an abstract tree built from the
 saved model config: no optimiser and no trainer code is involved (this module imports
 nothing from `cvmdx_jax.train`). Files are verified on reading (`storage.checksums`,
 `storage.checkpointing`); a run directory of an older version of cvmdx_jax is refused
@@ -15,16 +17,19 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 from flax import nnx
 
-from cvmdx_jax import sharding
+from cvmdx_jax import ego_motion, sharding
 from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.models import unet1d, uncertainty
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.runs import fingerprints, layout, tokens
-from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig
 from cvmdx_jax.storage import checkpointing, identity
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.storage.identity import content_id
 
 
@@ -103,6 +108,41 @@ class Denoiser:
     return unet1d.apply_unet(self.graphdef, self.params, x, t, q, cond=cond)
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class LearnedBaseline:
+  """A trained multiple-choice MLP for inference (a pytree: only `params` are leaves).
+
+  Attributes:
+    params: the parameters of the epoch chosen on val.
+    graphdef: the NNX graph definition.
+    config: the run's `BaselineConfig` (the MLP in `config.model`).
+    fingerprint: what it was trained on (`fingerprints.baseline`).
+    epoch: the chosen epoch.
+  """
+
+  params: dict
+  graphdef: nnx.GraphDef = _static()
+  config: BaselineConfig = _static()
+  fingerprint: ml_collections.FrozenConfigDict = _static()
+  epoch: int = dataclasses.field(default=0, metadata={"static": True})
+
+  def __call__(self, q, delta, xi, mask, v0, psi0):
+    """(trajectories (M, K, 125, 2) m, probabilities (M, K)) from tokens q (M,), delta
+    (M,) and the observed scenarios xi (M, 9, 75, 4), mask (M, 9, 75), v0, psi0 (M,)."""
+    out = _hypotheses(self, jnp.asarray(q, jnp.int32), jnp.asarray(delta, jnp.float32),
+                      jnp.asarray(xi, jnp.float32), jnp.asarray(mask, bool),
+                      jnp.asarray(v0, jnp.float32), jnp.asarray(psi0, jnp.float32))
+    return tuple(np.asarray(a) for a in out)
+
+
+@jax.jit
+def _hypotheses(baseline: LearnedBaseline, q, delta, xi, mask, v0, psi0):
+  ego = ego_motion.ego_features(xi, mask)
+  return mc.hypotheses(baseline.graphdef, baseline.params, baseline.config.model, q, delta,
+                       ego, v0, psi0)
+
+
 def _abstract(init, model_cfg) -> dict:
   """ShapeDtypeStructs of `init(model_cfg, key)`'s parameters (nothing is allocated)."""
   return jax.eval_shape(lambda key: init(model_cfg, key)[1], jax.random.key(0))
@@ -115,6 +155,19 @@ def _restore(workdir: Path, abstract: dict) -> tuple[dict, dict]:
                           abstract)
   tree, saved = checkpointing.load_latest(workdir / layout.CHECKPOINTS, abstract, partial=True)
   return tree, saved["fingerprint"]
+
+
+def _run_config(workdir: Path, cls, what: str):
+  """The typed config (`cls.from_config`) of <workdir>/config.json; a config.json that is
+  not one of this version is a CheckpointMismatchError naming the file."""
+  path = workdir / layout.CONFIG_JSON
+  try:
+    return cls.from_config(layout.read_json(path, what))
+  except CorruptRunError:
+    raise
+  except ValueError as e:
+    raise CheckpointMismatchError(f"{path}: {e}; a run of another version of cvmdx_jax: "
+                                  "retrain it") from e
 
 
 def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
@@ -162,14 +215,28 @@ def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
       model size, or a corrupt one.
   """
   workdir = Path(workdir)
-  path = workdir / layout.CONFIG_JSON
-  saved = layout.read_json(path, "diffusion")
-  try:
-    config = DiffusionConfig.from_config(saved)
-  except ValueError as e:
-    raise CheckpointMismatchError(f"{path}: {e}; a run of another version of cvmdx_jax: "
-                                  "retrain it") from e
+  config = _run_config(workdir, DiffusionConfig, "diffusion")
   tree, fingerprint = _restore(workdir, {"ema_params": _abstract(unet1d.init_unet,
                                                                  config.model)})
   return Denoiser(tree["ema_params"], unet1d.make_graphdef(config.model), config,
                   ml_collections.FrozenConfigDict(fingerprint))
+
+
+def load_baseline(workdir: str | os.PathLike) -> LearnedBaseline:
+  """The val-chosen parameters of a baseline run (`cvmdx_jax.train.baseline`), for inference.
+
+  Raises:
+    FileNotFoundError: no config.json (not a baseline run directory).
+    CorruptRunError: config.json is corrupt.
+    CheckpointMismatchError: config.json is not a `BaselineConfig` of this version; no
+      complete checkpoint, one of another model size (e.g. another number of ego-motion
+      features), or a corrupt one.
+  """
+  workdir = Path(workdir)
+  config = _run_config(workdir, BaselineConfig, "baseline")
+  abstract = {"best": {"params": _abstract(mc.init, config.model),
+                       "epoch": jax.ShapeDtypeStruct((), jnp.int32)}}
+  tree, fingerprint = _restore(workdir, abstract)
+  return LearnedBaseline(tree["best"]["params"], mc.make_graphdef(config.model), config,
+                         ml_collections.FrozenConfigDict(fingerprint),
+                         int(tree["best"]["epoch"]))

@@ -123,5 +123,5 @@ def train(config: DiffusionConfig, workdir: str | os.PathLike):
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
       fingerprint=fingerprints.diffusion(config, dataset_id, tokens_meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      on_start=lambda: layout.write_diffusion_dir(workdir, config), desc="diffusion")
+      on_start=lambda: layout.write_run_config(workdir, config), desc="diffusion")
 
