@@ -49,7 +49,7 @@ def test_load_split_errors(highd_config, highd_dir, tmp_path):
     dataset.load_split(out, "test_ood")
   path = out / "cache" / "test.npz"
   path.write_bytes(path.read_bytes()[:-10])  # interrupted write
-  with pytest.raises(DataError, match="does not match metadata"):
+  with pytest.raises(DataError, match="cache file does not match its checksum"):
     dataset.load_split(out, "test")
 
 
