@@ -31,7 +31,7 @@ import numpy as np
 from cvmdx_jax import cli
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
-from cvmdx_jax.evaluation import scoring
+from cvmdx_jax.evaluation import scoring, sweeps
 from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
 from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal import HypothesisConfig, fit_hypotheses
@@ -56,18 +56,14 @@ _MAX_N = flags.DEFINE_integer("max_num_samples", 0, "Largest N the choice may ta
                               "bound; 0 = any).", lower_bound=0)
 _TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative mean-ADE loss vs the "
                           "reference.", lower_bound=0.0)
-COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score",
-           "nll_final", "ece")
 
 
-def hypothesis_config(spec: str, base: HypothesisConfig) -> HypothesisConfig:
-  """'bic' or 'kmeans:<endpoint_weight>' -> the run's `HypothesisConfig` with that method."""
-  method, _, weight = spec.partition(":")
-  if method == "bic" and not weight:
-    return dataclasses.replace(base, method="bic")
-  if method == "kmeans":
-    return dataclasses.replace(base, method="kmeans", endpoint_weight=float(weight or 0.0))
-  raise ValueError(f"--methods: {spec!r} is not 'bic' or 'kmeans:<endpoint_weight>'")
+
+def _method(spec: str, base: HypothesisConfig) -> HypothesisConfig:
+  try:
+    return sweeps.hypothesis_config(spec, base)
+  except ValueError as e:
+    raise ValueError(f"--methods: {e}") from None
 
 
 def score(trajectories, config: HypothesisConfig, data) -> dict:
@@ -103,7 +99,7 @@ def sweep() -> tuple[list[dict], str, int]:
     data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   counts = sorted(int(n) for n in _SAMPLES.value)
-  configs = {spec: hypothesis_config(spec, predictor.sampling.hypotheses)
+  configs = {spec: _method(spec, predictor.sampling.hypotheses)
              for spec in _METHODS.value}
   saved = Path(_SAMPLES_FILE.value) if _SAMPLES_FILE.value else None
   if saved and saved.is_file():
@@ -136,34 +132,6 @@ def sweep() -> tuple[list[dict], str, int]:
   return rows, note, predictor.sampling.num_samples
 
 
-def choose(rows: list[dict], reference: dict, tolerance: float, max_num_samples: int = 0) -> dict:
-  """The lowest Brier-minFDE among rows with num_samples <= max_num_samples (0 = any)
-  whose mean ADE is <= (1 + tolerance) x the reference row's."""
-  ok = [r for r in rows if r["mean_ade"] <= (1.0 + tolerance) * reference["mean_ade"]
-        and (not max_num_samples or r["num_samples"] <= max_num_samples)]
-  return min(ok, key=lambda r: (r["brier_min_fde"], r["num_samples"]))
-
-
-def markdown(rows: list[dict], choice: dict, note: str, tolerance: float,
-             max_num_samples: int = 0) -> str:
-  """One row per (method, N), the chosen one marked."""
-  lines = [f"Hypothesis sweep: {note}", "",
-           "| method | N | mean ADE | mean FDE | minADE_K | minFDE_K | Brier-minFDE | energy "
-           "score | NLL 5 s | ECE | single-mode share | predict s / scenario | hypotheses "
-           "ms / scenario |", "|" + "---|" * 13]
-  for r in rows:
-    mark = " **(chosen)**" if r is choice else ""
-    lines.append(f"| {r['method']}{mark} | {r['num_samples']} | "
-                 + " | ".join(f"{r[c]:.3f}" for c in COLUMNS)
-                 + f" | {r['single_mode_share']:.2f} | {r['predict_s']:.4f} | "
-                 f"{1e3 * r['hypotheses_s']:.3f} |")
-  bound = f" among N <= {max_num_samples}" if max_num_samples else ""
-  lines += ["", f"Chosen: {choice['method']} with N = {choice['num_samples']}, the lowest "
-            f"Brier-minFDE{bound} whose mean ADE is within {100 * tolerance:g} % of the "
-            "reference's (chosen on val)."]
-  return "\n".join(lines) + "\n"
-
-
 def main(argv):
   if len(argv) > 1:
     raise ValueError(f"hypothesis_sweep: unexpected arguments {argv[1:]}")
@@ -175,13 +143,13 @@ def main(argv):
   if not ref:
     raise ValueError(f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
                      "evaluated; include it in --methods and --num_samples")
-  choice = choose(rows, ref[0], _TOL.value, _MAX_N.value)
+  choice = sweeps.choose_hypotheses(rows, ref[0], _TOL.value, _MAX_N.value)
   out = Path(_OUT.value)
   out.mkdir(parents=True, exist_ok=True)
   atomic.write_json(out / "sweep.json", {"note": note, "tolerance": _TOL.value,
                                          "max_num_samples": _MAX_N.value, "rows": rows,
                                          "choice": choice})
-  table = markdown(rows, choice, note, _TOL.value, _MAX_N.value)
+  table = sweeps.hypotheses_table(rows, choice, note, _TOL.value, _MAX_N.value)
   atomic.write_text(out / "sweep.md", table)
   print(table)
 

@@ -12,15 +12,8 @@ import pandas as pd
 import pytest
 import scipy.io
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-import pytest  # noqa: E402
-import scipy.io  # noqa: E402
-
-from cvmdx_jax.runs import tokens  # noqa: E402
-from cvmdx_jax.storage import atomic  # noqa: E402
+from cvmdx_jax.runs import tokens
+from cvmdx_jax.storage import atomic
 
 
 class _Boom:

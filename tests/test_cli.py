@@ -81,6 +81,9 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),
     ("evaluate", f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
      "--data_dir={T}/empty --workdir={NEW}", "File name too long"),
+    ("hypothesis_sweep", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
+    ("hypothesis_sweep", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
+    ("hypothesis_sweep", f"{EVAL} --out_dir={{NEW}} --tolerance=-0.1", "--tolerance=-0.1"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
      "--tokenizer_dir="),

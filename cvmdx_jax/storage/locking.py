@@ -4,9 +4,9 @@
 is written to the directory and writes "<pid> <host>" into that file; a second process gets
 `WorkdirLockedError` naming the holder. The OS drops the lock when the holder exits or is
 killed (kill -9 included), so a stale lock file never blocks a rerun. Holds nest within one
-process; `is_held` tells code that needs its caller's hold (`train.loop.train`). A directory that
-`hold` created and that holds nothing but the lock file afterwards is removed again, so a run
-refused for bad input leaves no trace.
+process; `is_held` tells code that needs its caller's hold (`train.loop.train`). When the
+directory holds nothing but the lock file afterwards, the lock file is removed (and the
+directory too when `hold` created it), so a run refused for bad input leaves no trace.
 
 Several processes of one `jax.distributed` run (a shared workdir): process i locks
 `<workdir>/.lock` (i = 0) or `<workdir>/.lock.<i>`, so a second run, single- or
@@ -138,10 +138,11 @@ def hold(workdir: str | os.PathLike) -> Iterator[Path]:
     yield path
   finally:
     _held.pop(path, None)
-    if created and [p.name for p in path.parent.iterdir()] == [path.name]:
+    if [p.name for p in path.parent.iterdir()] == [path.name]:  # nothing else written
       path.unlink()
-      with contextlib.suppress(OSError):
-        path.parent.rmdir()
+      if created:
+        with contextlib.suppress(OSError):
+          path.parent.rmdir()
     os.close(fd)
 
 
