@@ -1,11 +1,20 @@
 """Shared pytest fixtures."""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
-from cvmdx_jax import host_allocator
+# One XLA compilation per distinct computation across the whole run (the tests build the
+# same tiny models many times, in this process, in the xdist workers and in the entry points
+# they start): JAX's persistent compilation cache. A user's setting wins;
+# set before JAX is imported.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      str(Path(tempfile.gettempdir()) / f"cvmdx_jax_tests_{os.getuid()}"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+
+from cvmdx_jax import host_allocator  # noqa: E402
 
 # Entry points started by the tests keep the allocator they start with (no re-execution,
 # which would double their start-up); tests/test_host_allocator.py covers it.

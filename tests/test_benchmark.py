@@ -14,6 +14,7 @@ OFFICIAL = {"params": 22_470_000, "b1": {"total": 1.6, "ddim": 1.5, "post": 0.1}
             "big": {"total": 48.0, "b": 32}, "train": {"step": 6.0, "batch": 256}}
 
 
+@pytest.mark.slow
 def test_reference_timings_schema_on_a_tiny_model(tmp_path):
   config = DiffusionConfig.from_config(diffusion_config.get_config("tiny"))
   sampling = sampling_lib.SamplingConfig(num_samples=3, sampler="dpmpp2m", steps=2)

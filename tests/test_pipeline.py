@@ -346,6 +346,7 @@ def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
   assert not out.exists()
 
 
+@pytest.mark.slow
 def test_codebook_ablation_script(runs, tmp_path):
   out = tmp_path / "ablation"
   proc = subprocess.run(

@@ -94,6 +94,7 @@ def _tiny_unet():
   return cfg, g, p
 
 
+@pytest.mark.slow
 def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
   """sampler="dpmpp2m" runs through predict_batch and, at many steps, lands where
   many-step DDIM does: both integrate the same guided probability-flow ODE."""

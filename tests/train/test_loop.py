@@ -87,6 +87,7 @@ def test_two_devices_match_one_device_and_odd_batch_is_refused(tmp_path):
   assert "batch_size=5 must be a positive multiple of the number of devices (2)" in odd.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["diffusion", "tokenizer"])
 def test_real_models_on_two_devices_match_one_device(tmp_path, task):
   args = dict(task=task, epochs=1, m=12, batch_size=4)
