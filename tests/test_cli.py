@@ -6,6 +6,7 @@ script gets an unknown flag, a bad value of a numeric flag or config field, a mi
 input directory and, where it has a config, a bad preset or field; the other kinds of
 user error (unwritable output directory, garbled JSON, locked workdir, missing dataset,
 wrong type, NaN, missing config file, missing required flag, stray argument) once each.
+The default run takes each script's first case and each of those kinds; the rest are slow.
 """
 
 import errno
@@ -151,8 +152,22 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("index", range(len(CASES)),
-                         ids=[f"{script}-{i}" for i, (script, _, _) in enumerate(CASES)])
+# The default run: each script's first case and each kind of error once (about 2-3 s of
+# start-up a case); the other cases run in the slow target.
+KINDS = {"pid", "stray", "recordings/plans.json", "File name too long", "--config",
+         "--config.sumo.workers=two", "--config.sampling.guidance.w_min=nan", "--workdir=",
+         "empty/cache/metadata.json", "--config=configs/nosuch.py", "--baseline_dir="}
+
+
+def _params():
+  seen = set()
+  for i, (script, _, named) in enumerate(CASES):
+    marks = () if script not in seen or named in KINDS else (pytest.mark.slow,)
+    seen.add(script)
+    yield pytest.param(i, id=f"{script}-{i}", marks=marks)
+
+
+@pytest.mark.parametrize("index", _params())
 def test_user_error_is_one_line_exit_2(inputs, index):
   script, args, named = CASES[index]
   new = inputs / "new" / str(index)

@@ -87,6 +87,7 @@ def _predict_ego(g, p, ego, keys, config, denoiser):
                                 denoiser_config=denoiser)
 
 
+@pytest.mark.slow
 def test_ego_film_reaches_the_unconditional_branch():
   cfg = dataclasses.replace(CFG, cond_dim=ego_motion.NUM_FEATURES)
   g, p = unet1d.init_unet(cfg, jax.random.key(2))

@@ -134,6 +134,7 @@ def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatc
   assert not (tmp_path / "refused").exists()
 
 
+@pytest.mark.slow
 def test_report_sampling_overrides_reach_the_predictor(runs):
   """evaluate.py --sampler/--steps: the report samples with the override, and its mean
   trajectory is the one a Predictor with that sampling gives."""
@@ -259,6 +260,7 @@ def test_predictor_is_deterministic_and_chunk_independent(runs):
   np.testing.assert_allclose(a.hypotheses.probs.sum(-1), 1.0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_load_denoiser_restores_the_ema_params_alone(runs):
   denoiser = runs_lib.load_denoiser(runs / "diffusion")
   # reference: the whole train state, restored with the trainer's init_fn
@@ -299,6 +301,7 @@ def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):
     Predictor.load(tmp_path / "other_tokenizer", runs / "diffusion")
 
 
+@pytest.mark.slow
 def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
@@ -362,6 +365,7 @@ def test_codebook_ablation_script(runs, tmp_path):
   assert saved["cvq_q6"]["cvmdx_mean"]["all"]["num_scenarios"] == 12
 
 
+@pytest.mark.slow
 def test_codebook_health_script(runs, tmp_path):
   out = tmp_path / "health"
   proc = subprocess.run(
@@ -401,6 +405,7 @@ def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, mon
   assert np.isfinite(out.prediction.trajectories).all()
 
 
+@pytest.mark.slow
 def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")

@@ -75,7 +75,8 @@ def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
   assert len(traces) == 2
 
 
-@pytest.mark.parametrize("name", ["diffusion", "tokenizer"])
+@pytest.mark.parametrize("name", [pytest.param("diffusion", marks=pytest.mark.slow),
+                                  "tokenizer"])
 def test_training_step_compiles_once(tmp_path, name):
   init_fn, step_fn, data = task(name, 12)  # batch 8: one full and one padded batch an epoch
   traces = []

@@ -123,6 +123,7 @@ def test_samplers_take_an_explicit_x_T(schedule):
     assert not np.allclose(same, other)
 
 
+@pytest.mark.slow
 def test_inference_official_mode_runs_the_official_loop(schedule):
   cfg = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                           attention_levels=(), num_heads=2)
