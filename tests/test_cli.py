@@ -167,7 +167,7 @@ def _params():
     yield pytest.param(i, id=f"{script}-{i}", marks=marks)
 
 
-@pytest.mark.parametrize("index", _params())
+@pytest.mark.parametrize("index", list(_params()))
 def test_user_error_is_one_line_exit_2(inputs, index):
   script, args, named = CASES[index]
   new = inputs / "new" / str(index)
@@ -282,8 +282,11 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
       "  time.sleep(60)\n"
       "cli.run(main)\n")
   env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+  # SIGINT as in a terminal: a parent that ignores it (an xdist worker may) would pass the
+  # ignore on to the child, which then never sees the signal.
   proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
   try:
     assert proc.stdout.readline() == "ready\n"
     proc.send_signal(signal.SIGINT)
