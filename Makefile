@@ -22,7 +22,7 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) experiments/run_demo.py --workdir=runs/demo
 
-## The default test run (< ~10 min on 2 cores).
+## The default test run (~15 min on 2 cores).
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 -m "not slow"
 
