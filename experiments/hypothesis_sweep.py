@@ -58,7 +58,6 @@ _TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative mean-ADE loss vs 
                           "reference.", lower_bound=0.0)
 
 
-
 def _method(spec: str, base: HypothesisConfig) -> HypothesisConfig:
   try:
     return sweeps.hypothesis_config(spec, base)

@@ -24,7 +24,8 @@ def hypothesis_config(spec: str, base: HypothesisConfig) -> HypothesisConfig:
   raise ValueError(f"hypothesis method {spec!r} is not 'bic' or 'kmeans:<endpoint_weight>'")
 
 
-def choose_hypotheses(rows: list[dict], reference: dict, tolerance: float, max_num_samples: int = 0) -> dict:
+def choose_hypotheses(rows: list[dict], reference: dict, tolerance: float,
+                      max_num_samples: int = 0) -> dict:
   """The lowest Brier-minFDE among rows with num_samples <= max_num_samples (0 = any)
   whose mean ADE is <= (1 + tolerance) x the reference row's."""
   ok = [r for r in rows if r["mean_ade"] <= (1.0 + tolerance) * reference["mean_ade"]
@@ -33,7 +34,7 @@ def choose_hypotheses(rows: list[dict], reference: dict, tolerance: float, max_n
 
 
 def hypotheses_table(rows: list[dict], choice: dict, note: str, tolerance: float,
-             max_num_samples: int = 0) -> str:
+                     max_num_samples: int = 0) -> str:
   """One row per (method, N), the chosen one marked."""
   lines = [f"Hypothesis sweep: {note}", "",
            "| method | N | mean ADE | mean FDE | minADE_K | minFDE_K | Brier-minFDE | energy "
