@@ -30,6 +30,9 @@ class DenoiserConfig:
     conditioning: one of `ego_motion.CONDITIONINGS`.
     residual_decay_s: (a_x, yaw rate) decay time constants of the residual base, s.
     class_weights: loss weight per maneuver class (keep lane, lcr, lcl).
+    guidance_input: the U-Net's last FiLM feature is the guidance weight w: a
+      guidance-distilled student (`diffusion.distillation`), one evaluation per step in
+      place of the guided pair (beyond the paper).
   """
 
   num_steps: int = 1000
@@ -38,6 +41,7 @@ class DenoiserConfig:
   conditioning: str = "token"
   residual_decay_s: tuple[float, float] = (3.0, 0.1)
   class_weights: tuple[float, ...] = (1.0,) * constants.NUM_CLASSES
+  guidance_input: bool = False
 
   RANGES: ClassVar = {"num_steps": POSITIVE, "cond_drop_prob": BELOW_ONE,
                       "control_scale": POSITIVE, "residual_decay_s": POSITIVE,
@@ -50,6 +54,13 @@ class DenoiserConfig:
                              f"need {constants.NUM_CLASSES} positive finite weights, one per "
                              f"class {constants.CLASS_NAMES}")
     ego_motion.check_conditioning(self.conditioning)
+
+  @property
+  def cond_dim(self) -> int:
+    """Width of the U-Net's FiLM conditioning vector: the ego-motion features of an
+    `ego_film*` conditioning, then w for a guidance student."""
+    film = ego_motion.NUM_FEATURES if ego_motion.uses_film(self.conditioning) else 0
+    return film + int(self.guidance_input)
 
   @property
   def weighted_classes(self) -> bool:

@@ -1,13 +1,17 @@
 """Network evaluations against accuracy: DDIM and DPM-Solver++(2M) at several step
-counts on one trained run's validation split; picks the default sampler.
+counts on one trained run's validation split, and the distilled students of it
+(`experiments/distill.py`); picks the default sampler.
 
   .venv/bin/python experiments/sampler_pareto.py \\
       --tokenizer_dir=runs/demo/tokenizer --diffusion_dir=runs/demo/diffusion \\
+      --distilled_dirs=runs/demo/distill_guidance,runs/demo/distill \\
       --data_dir=runs/demo/data --out_dir=runs/demo/pareto
 
-Every setting samples the same class-balanced scenarios with the same seed and the
-run's own guidance (paper mode). U-Net evaluations per sample = 2 S (conditional and
-unconditional branch per step). The chosen default is the setting with the fewest
+Every setting samples the same class-balanced scenarios with the same seed, the run's own
+guidance (paper mode), number of samples and hypothesis method. U-Net evaluations per
+sample = 2 S for the guided pair (conditional and unconditional branch per step), S for a
+student (w is its input); a student runs the distilled sampler at its own steps (a
+guidance student also at --guidance_student_steps). The chosen default is the setting with the fewest
 evaluations whose --criteria (default: mean ADE / FDE and best-of-K ADE / FDE) are all
 within --tolerance of the reference's (the paper's DDIM-10): with mean ADE alone, a
 2-step solver wins while its samples collapse (best-of-K 3 % worse; BUILD_NOTES.md).
@@ -43,10 +47,15 @@ _TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative loss vs the refer
                           lower_bound=0.0)
 _CRITERIA = flags.DEFINE_list("criteria", ["mean_ade", "mean_fde", "min_ade_k", "min_fde_k"],
                               "Errors that must stay within --tolerance of the reference's.")
+_DISTILLED = flags.DEFINE_list("distilled_dirs", [], "Distilled student run directories "
+                                "(experiments/distill.py) of --diffusion_dir.")
+_STUDENT_STEPS = flags.DEFINE_list("guidance_student_steps", ["1", "2", "4"],
+                                   "Distilled-sampler steps of a guidance student (a "
+                                   "progressive student runs at its own steps).")
 _FROM_JSON = flags.DEFINE_string("from_json", None, "Re-tabulate the rows of this pareto.json "
                                  "(no sampling; the run flags only name the output).")
 REFERENCE = ("ddim", 10)  # the paper's sampler
-COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k")
+COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score")
 
 
 def choose_default(rows: list[dict], tolerance: float, criteria=("mean_ade",),
@@ -68,28 +77,32 @@ def markdown(rows: list[dict], choice: dict, tolerance: float, note: str,
              criteria=("mean_ade",)) -> str:
   """The Pareto table, one row per setting, the chosen one marked."""
   lines = [f"Sampler Pareto: {note}", "",
-           "| sampler | S | U-Net evals / sample | mean ADE | mean FDE | minADE_K | minFDE_K |",
-           "|---|---|---|---|---|---|---|"]
+           "| sampler | S | U-Net evals / sample | mean ADE | mean FDE | minADE_K | minFDE_K "
+           "| Brier-minFDE | energy score |", "|---|---|---|---|---|---|---|---|---|"]
   for r in sorted(rows, key=lambda r: (r["evaluations"], r["sampler"])):
     mark = " **(default)**" if r is choice else ""
-    lines.append(f"| {r['sampler']}{mark} | {r['steps']} | {r['evaluations']} | "
-                 + " | ".join(f"{r[c]:.3f}" for c in COLUMNS) + " |")
+    run = f" ({r['run']})" if r.get("run") else ""
+    lines.append(f"| {r['sampler']}{run}{mark} | {r['steps']} | {r['evaluations']} | "
+                 + " | ".join(f"{r[c]:.3f}" if c in r else "-" for c in COLUMNS) + " |")
   lines += ["", f"Default: {choice['sampler']} S = {choice['steps']}, the fewest evaluations "
             f"with {', '.join(criteria)} within {100 * tolerance:g} % of "
             f"{REFERENCE[0]}-{REFERENCE[1]} (chosen on val)."]
   return "\n".join(lines) + "\n"
 
 
-def evaluate(predictor: Predictor, data, sampler: str, steps: int, seed: int) -> dict:
+def evaluate(predictor: Predictor, data, sampler: str, steps: int, seed: int,
+             run: str = "") -> dict:
   """Mean errors (m) of one sampler setting on `data` (time: experiments/benchmark.py)."""
   p = dataclasses.replace(predictor, sampling=dataclasses.replace(
       predictor.sampling, sampler=sampler, steps=steps, mode="paper"))
   out = p(data, seed=seed)
   errors = scoring.cvmdx_errors(out, jnp.asarray(data.future), data.label)
-  means = {"mean_ade": errors["cvmdx_mean"]["ade"], "mean_fde": errors["cvmdx_mean"]["fde"],
-           "min_ade_k": errors["cvmdx_best_of_k"]["ade"],
-           "min_fde_k": errors["cvmdx_best_of_k"]["fde"]}
-  return {"sampler": sampler, "steps": steps, "evaluations": 2 * steps,
+  mean, best = errors["cvmdx_mean"], errors["cvmdx_best_of_k"]
+  means = {"mean_ade": mean["ade"], "mean_fde": mean["fde"], "min_ade_k": best["ade"],
+           "min_fde_k": best["fde"], "brier_min_fde": best["brier_min_fde"],
+           "energy_score": mean["energy_score"]}
+  per_step = 1 if predictor.denoiser.config.diffusion.guidance_input else 2
+  return {"sampler": sampler, "steps": steps, "evaluations": per_step * steps, "run": run,
           **{k: float(np.mean(v)) for k, v in means.items()}}
 
 
@@ -103,9 +116,16 @@ def sample_rows() -> tuple[list[dict], str]:
   if _NUM.value:
     data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
+  runs = [(predictor, sampler, steps, "") for sampler, steps in settings]
+  for path in _DISTILLED.value:
+    student = dataclasses.replace(Predictor.load(_TOKENIZER.value, path),
+                                  sampling=predictor.sampling)
+    taught = student.denoiser.fingerprint.to_dict()["distill"]
+    steps = (taught["steps"],) if taught["stage"] == "progressive" else _STUDENT_STEPS.value
+    runs += [(student, "distilled", int(s), Path(path).name) for s in steps]
   rows = []
-  for sampler, steps in settings:
-    rows.append(evaluate(predictor, data, sampler, steps, _SEED.value))
+  for p, sampler, steps, run in runs:
+    rows.append(evaluate(p, data, sampler, steps, _SEED.value, run))
     print(rows[-1], flush=True)
   note = (f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} class-balanced scenarios, "
           f"seed {_SEED.value}, {predictor.sampling.num_samples} samples")

@@ -49,6 +49,7 @@ DIFF = "--config=configs/diffusion.py:tiny"
 DATA = "--config=configs/dataset.py:tiny"
 EVAL = "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty --data_dir={T}/empty"
 BASE = "--config=configs/baseline.py:tiny"
+DIST = "--config=configs/distill.py:tiny"
 LONG = "n" * 300  # a path component longer than any file system allows (ENAMETOOLONG)
 CASES = [
     ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --nosuch=1", "'nosuch'"),
@@ -70,6 +71,13 @@ CASES = [
      "--codebook_sizes=0", "--codebook_sizes="),
     ("codebook_health", f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}}",
      "empty/cache/metadata.json"),  # no dataset there
+    ("distill", f"{DIST} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
+    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/nosuch",
+     "--config.teacher_dir="),
+    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty "
+     "--config.steps=0", "--config.steps=0"),
+    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty",
+     "empty/config.json"),  # not a run directory
     ("evaluate", f"{EVAL} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("evaluate", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
      "--data_dir={T}/empty --workdir={NEW}", "--tokenizer_dir="),

@@ -20,18 +20,20 @@ import pytest
 from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
+from configs import distill as distill_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import ego_motion
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs import loaders as runs_lib
-from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.runs.config import (BaselineConfig, DiffusionConfig, DistillConfig,
+                                   TokenizerRunConfig)
 from cvmdx_jax.storage import atomic, checkpointing
 from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
-from cvmdx_jax.train import baseline, diffusion, tokenizer
+from cvmdx_jax.train import baseline, diffusion, distill, tokenizer
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -438,3 +440,45 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
     diff.diffusion.class_weights = bad
     with pytest.raises(ValueError, match="diffusion.class_weights"):
       DiffusionConfig.from_config(diff)
+
+
+def _distill(teacher_dir, workdir, steps):
+  config = distill_config.get_config("tiny")
+  config.teacher_dir, config.steps = str(teacher_dir), steps
+  return distill.train(DistillConfig.from_config(config), workdir)
+
+
+def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_path,
+                                                                     monkeypatch):
+  scenarios = dataset.load_split(runs / "data", "test").take(np.arange(4))
+  teacher = runs_lib.load_denoiser(runs / "diffusion")
+  _distill(runs / "diffusion", tmp_path / "guidance", 4)
+  _distill(tmp_path / "guidance", tmp_path / "progressive", 2)
+  for name, steps in (("guidance", 4), ("progressive", 2)):
+    predictor = Predictor.load(runs / "tokenizer", tmp_path / name)
+    student = predictor.denoiser.config
+    assert (predictor.sampling.sampler, predictor.sampling.steps) == ("distilled", steps)
+    assert student.diffusion.guidance_input and student.model.cond_dim == 1
+    assert student.model.num_tokens == teacher.config.model.num_tokens
+    a, b = predictor(scenarios, seed=1), predictor(scenarios, seed=1)
+    np.testing.assert_array_equal(a.prediction.trajectories, b.prediction.trajectories)
+    assert a.prediction.trajectories.shape == (4, 9, 125, 2)
+    assert np.isfinite(a.prediction.trajectories).all()
+  # a progressive student for 2 steps teaches one for 1 step, not another for 2
+  with pytest.raises(distill.TeacherMismatchError, match="not steps=2"):
+    _distill(tmp_path / "progressive", tmp_path / "again", 2)
+  assert not (tmp_path / "again").exists()
+  # the distilled sampler needs a student; a student has no guided pair for the official mode
+  with pytest.raises(ValueError, match="'distilled' needs a distilled denoiser"):
+    Predictor.load(runs / "tokenizer", runs / "diffusion",
+                   dataclasses.replace(teacher.config.sampling, sampler="distilled"))
+  with pytest.raises(ValueError, match="'official'"):
+    Predictor.load(runs / "tokenizer", tmp_path / "guidance", dataclasses.replace(
+        teacher.config.sampling, sampler="ddim", mode="official"))
+  # resuming with a teacher of other weights is refused, naming the teacher's params id
+  load = runs_lib.load_denoiser
+  other = lambda d: dataclasses.replace(load(d), params=jax.tree.map(lambda p: p + 1e-3,
+                                                                     load(d).params))
+  monkeypatch.setattr(runs_lib, "load_denoiser", other)
+  with pytest.raises(checkpointing.CheckpointMismatchError, match="teacher.params_id"):
+    _distill(runs / "diffusion", tmp_path / "guidance", 4)

@@ -18,9 +18,9 @@ from cvmdx_jax.diffusion.schedule import Schedule, ddim_timesteps, official_ddim
 
 
 def predict_x0_eps(v_fn, x_t, t, abar_t, clip_x0):
-  """x0 and eps from v_fn at the scalar timestep t; x0 optionally clipped (eps then
-  recomputed from the clipped x0)."""
-  t_vec = jnp.full((x_t.shape[0],), t, jnp.int32)
+  """x0 and eps from v_fn at timestep t (a scalar, or (B,) with abar_t (B,)); x0
+  optionally clipped (eps then recomputed from the clipped x0)."""
+  t_vec = jnp.broadcast_to(jnp.asarray(t, jnp.int32), (x_t.shape[0],))
   v = v_fn(x_t, t_vec)
   x0 = param.x0_from_v(x_t, v, abar_t)
   if clip_x0 is None:
@@ -29,7 +29,8 @@ def predict_x0_eps(v_fn, x_t, t, abar_t, clip_x0):
   return x0, param.eps_from_x0(x_t, x0, abar_t)
 
 
-def _initial_noise(key, index: int, shape, x_T):
+def initial_noise(key, index: int, shape, x_T):
+  """x_T if given (its shape checked), else N(0, I) of `shape` from fold_in(key, index)."""
   if x_T is None:
     return jax.random.normal(jax.random.fold_in(key, index), shape)
   if tuple(x_T.shape) != tuple(shape):
@@ -61,7 +62,7 @@ def ddim_sample(v_fn, key, shape, schedule: Schedule, steps: int = 10, eta: floa
   ts = jnp.asarray(ddim_timesteps(schedule.num_steps, steps))
   abar = schedule.alphas_cumprod
   abar_prev = jnp.concatenate([abar[ts[1:]], jnp.ones((1,), abar.dtype)])
-  x_T = _initial_noise(key, steps, shape, x_T)
+  x_T = initial_noise(key, steps, shape, x_T)
 
   def body(x_t, inputs):
     i, t, a_prev = inputs
@@ -87,7 +88,7 @@ def ddpm_sample(v_fn, key, shape, schedule: Schedule, clip_x0: float | None = No
   abar = schedule.alphas_cumprod
   betas = schedule.betas
   abar_prev = jnp.concatenate([jnp.ones((1,), abar.dtype), abar[:-1]])
-  x_T = _initial_noise(key, num_steps, shape, x_T)
+  x_T = initial_noise(key, num_steps, shape, x_T)
 
   def body(x_t, t):
     a_t, a_prev, b_t = abar[t], abar_prev[t], betas[t]
@@ -144,7 +145,7 @@ def official_ddim_sample(branches_fn, key, shape, schedule: Schedule, steps: int
   ts, ts_prev = official_ddim_timesteps(schedule.num_steps, steps)
   weights = official_step_weights(len(ts), w_start, w_end)
   abar = schedule.alphas_cumprod
-  x_T = _initial_noise(key, steps, shape, x_T)
+  x_T = initial_noise(key, steps, shape, x_T)
 
   def body(x_t, inputs):
     i, t, t_prev, w = inputs

@@ -37,7 +37,8 @@ from cvmdx_jax import ego_motion, sharding
 from cvmdx_jax.data import highd
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
-from cvmdx_jax.inference.sampling import Prediction, SamplingConfig, predict_batch
+from cvmdx_jax.inference.sampling import (Prediction, SamplingConfig, check_sampler,
+                                          predict_batch)
 from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import identity
@@ -162,6 +163,7 @@ class Predictor:
   delta_limit: float = math.inf
 
   def __post_init__(self):
+    check_sampler(self.sampling, self.denoiser.config.diffusion.guidance_input)
     mesh = sharding.data_mesh()
     object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
     object.__setattr__(self, "denoiser", sharding.replicate(self.denoiser, mesh))

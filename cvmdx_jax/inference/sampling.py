@@ -15,12 +15,14 @@ import jax.numpy as jnp
 from cvmdx_jax import constants, ego_motion, targets, vmm
 from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
-                                 ddpm_sample, guided_v_fn, official_ddim_sample)
+                                 ddpm_sample, guidance_weight, guided_v_fn,
+                                 official_ddim_sample)
+from cvmdx_jax.diffusion.distillation import distilled_sample, student_cond
 from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
 from cvmdx_jax.models.unet1d import apply_unet
 from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
-SAMPLERS = ("ddim", "ddpm", "dpmpp2m")
+SAMPLERS = ("ddim", "ddpm", "dpmpp2m", "distilled")
 MODES = ("paper", "official")
 # of `predict_batch` under jax.jit
 STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")
@@ -35,11 +37,14 @@ class SamplingConfig:
     num_samples: N samples per scenario.
     sampler: "ddim" (S steps), "ddpm" (all T steps, the cVMD way) or "dpmpp2m"
       (DPM-Solver++(2M) over the same guided ODE as DDIM, S network evaluations:
-      `diffusion.solvers.dpmpp_2m_sample`; beyond the paper).
+      `diffusion.solvers.dpmpp_2m_sample`; beyond the paper) or "distilled" (a distilled
+      student's deterministic DDIM, S evaluations: `diffusion.distillation`; needs a
+      denoiser with `guidance_input`). A guidance student (`DenoiserConfig.guidance_input`)
+      takes w as an input: every sampler then spends one evaluation per step, not two.
     mode: "paper" (the paper's equations) or "official" (the official code's guided
       DDIM loop: `diffusion.official_ddim_sample`, S - 1 updates, weights from
       guidance.w_min to guidance.w_max_base over the step index, no delta).
-    steps: S, DDIM or DPM-Solver++(2M) steps (guided evaluations per sample).
+    steps: S, DDIM, DPM-Solver++(2M) or distilled steps (guided evaluations per sample).
     eta: DDIM noise (0 = deterministic).
     clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
       official sampler clips to [-1, 1]); None or 0 = no clipping.
@@ -86,17 +91,36 @@ class Prediction:
   hypotheses: Hypotheses
 
 
+def check_sampler(config: SamplingConfig, guidance_input: bool) -> None:
+  """ValueError where `config` cannot sample the denoiser: the official mode needs the
+  guided pair, the distilled sampler a guidance student."""
+  if guidance_input and config.mode == "official":
+    raise ValueError("sampling.mode 'official' runs the guided pair; a distilled denoiser "
+                     "(guidance_input) has none: use mode 'paper'")
+  if config.sampler == "distilled" and not guidance_input:
+    raise ValueError("sampling.sampler 'distilled' needs a distilled denoiser "
+                     "(experiments/distill.py); this one is not")
+
+
 def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null_token: int,
-                    config: SamplingConfig, ego=None):
+                    config: SamplingConfig, ego=None, guidance_input: bool = False):
   """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2).
 
   ego: (F,) ego-motion features for a U-Net with cond_dim = F, else None. Both guidance
   branches get them: the unconditional branch drops only the token (the paper's CFG).
+  guidance_input: the U-Net is a guidance student (its last FiLM feature is w(t, delta)):
+  one evaluation per step replaces the guided pair.
   """
+  check_sampler(config, guidance_input)
   n = config.num_samples
   cond = lambda x_t: None if ego is None else jnp.broadcast_to(ego, (len(x_t), ego.shape[-1]))
   model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c, cond=cond(x_t))
   shape = (n, constants.T_PRED, 2)
+  if guidance_input:
+    qs = jnp.full((n,), q)
+    v_fn = lambda x_t, t: apply_unet(graphdef, params, x_t, t, qs, cond=student_cond(
+        cond(x_t), guidance_weight(t, delta, schedule.num_steps, config.guidance)))
+    return _sample(v_fn, key, shape, schedule, config)
   if config.mode == "official":
     return official_ddim_sample(
         cond_uncond_v_fn(model_fn, jnp.full((n,), q), null_token), key, shape, schedule,
@@ -104,6 +128,13 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
         w_start=config.guidance.w_min, w_end=config.guidance.w_max_base)
   v_fn = guided_v_fn(model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule,
                      config.guidance)
+  return _sample(v_fn, key, shape, schedule, config)
+
+
+def _sample(v_fn, key, shape, schedule: Schedule, config: SamplingConfig):
+  """x0 samples of `shape` from the guided `v_fn` with the sampler of `config`."""
+  if config.sampler == "distilled":
+    return distilled_sample(v_fn, key, shape, schedule, config.steps, clip_x0=config.clip_x0)
   if config.sampler == "ddpm":
     return ddpm_sample(v_fn, key, shape, schedule, clip_x0=config.clip_x0)
   if config.sampler == "dpmpp2m":
@@ -143,7 +174,8 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
   film = ego if ego_motion.uses_film(conditioning) else None
   x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
       graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
-      config=config, ego=ei))(q, delta, keys, film)
+      config=config, ego=ei, guidance_input=denoiser_config.guidance_input))(
+          q, delta, keys, film)
   controls = targets.denormalize_controls(x0, denoiser_config.control_scale)
   if ego_motion.uses_residual(conditioning):
     controls = controls + ego_motion.residual_controls(

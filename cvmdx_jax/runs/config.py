@@ -15,7 +15,6 @@ A diffusion run stores its `DiffusionConfig` as `config.json` (`runs.layout`), w
 import dataclasses
 from typing import Any, ClassVar
 
-from cvmdx_jax import ego_motion
 from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
                                         ConfigFieldError, check_ranges, to_dataclass)
 from cvmdx_jax.inference.sampling import SamplingConfig
@@ -133,11 +132,12 @@ class DiffusionConfig:
 
   def __post_init__(self):
     _check_run(self)
-    cond_dim = ego_motion.NUM_FEATURES if ego_motion.uses_film(self.diffusion.conditioning) else 0
+    cond_dim = self.diffusion.cond_dim
     if self.model.cond_dim != cond_dim:
       raise ValueError(f"model.cond_dim={self.model.cond_dim}: the {self.diffusion.conditioning!r} "
-                       f"conditioning has {cond_dim} ego-motion features "
-                       "(cvmdx_jax/ego_motion.py, FEATURES)")
+                       f"conditioning has {cond_dim - self.diffusion.guidance_input} ego-motion "
+                       "features (cvmdx_jax/ego_motion.py, FEATURES)"
+                       f"{' and the guidance weight' if self.diffusion.guidance_input else ''}")
 
   @classmethod
   def from_config(cls, config: Any) -> "DiffusionConfig":
@@ -145,10 +145,9 @@ class DiffusionConfig:
     config.json); ConfigFieldError or ValueError naming the field when one is bad."""
     sections = dict(config.items())
     diffusion = to_dataclass(DenoiserConfig, sections.pop("diffusion"), where="diffusion")
-    cond_dim = ego_motion.NUM_FEATURES if ego_motion.uses_film(diffusion.conditioning) else 0
     model = dict(sections.pop("model").items())
     model.setdefault("num_tokens", 0)
-    model.setdefault("cond_dim", cond_dim)
+    model.setdefault("cond_dim", diffusion.cond_dim)
     return to_dataclass(cls, sections, diffusion=diffusion,
                         model=to_dataclass(UNetConfig, model, where="model"))
 
@@ -156,6 +155,38 @@ class DiffusionConfig:
     """This config with the U-Net sized for `num_tokens` tokens (Q; token Q is null)."""
     return dataclasses.replace(self, model=dataclasses.replace(self.model,
                                                                num_tokens=num_tokens))
+
+
+@dataclasses.dataclass(frozen=True)
+class DistillConfig:
+  """A distillation run (configs/distill.py, `cvmdx_jax.train.distill`): one stage from a
+  teacher run. A guided denoiser teaches a guidance student (w as an input); a guidance
+  student teaches a progressive student for `steps` steps (itself sampled at 2 `steps`).
+
+  Attributes:
+    teacher_dir: the teacher run (a diffusion run or a distillation run).
+    data_dir, tokenizer_dir: the teacher's training data and tokeniser run ("" = the paths
+      in the teacher's config.json).
+    seed: the noise, timesteps, example order and (guidance stage) the new FiLM layer.
+    steps: S, the student's sampling steps (`sampling.sampler` "distilled").
+    train: `DiffusionTrainConfig` (AdamW, EMA, epochs over the train split).
+  """
+
+  teacher_dir: str = "runs/diffusion"
+  data_dir: str = ""
+  tokenizer_dir: str = ""
+  seed: int = 0
+  steps: int = 2
+  train: DiffusionTrainConfig = DiffusionTrainConfig()
+
+  def __post_init__(self):
+    _check_run(self)
+    check_ranges(self, {"steps": POSITIVE})
+
+  @classmethod
+  def from_config(cls, config: Any) -> "DistillConfig":
+    """The typed run config of a configs/distill.py ConfigDict."""
+    return to_dataclass(cls, config)
 
 
 # val read-outs of the baseline's `train.baseline.evaluate` the epoch can be chosen on

@@ -66,26 +66,37 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
                     weight=batch["weight"] * batch.get("class_weight", 1.0))
 
     loss, grads = jax.value_and_grad(loss_fn)(state["params"])
-    updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
-    params = optax.apply_updates(state["params"], updates)
-    step = state["step"] + 1
-    decay = jnp.minimum(ema_decay, (1.0 + step) / (10.0 + step))
-    ema = jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, state["ema_params"], params)
-    new = {"params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
-    return new, {"loss": loss, "grad_norm": optax.tree.norm(grads)}
+    return apply_gradients(state, grads, tx, ema_decay), {"loss": loss,
+                                                          "grad_norm": optax.tree.norm(grads)}
 
   return step_fn
 
 
-def training_data(config: DiffusionConfig) -> tuple[dict, int, str, dict]:
-  """(arrays {x0, q[, ego][, class_weight]}, Q, dataset id, tokens metadata) of the
-  training split; `class_weight` (M,) only where `diffusion.class_weights` is not all 1."""
+def apply_gradients(state, grads, tx, ema_decay: float):
+  """`state` ({params, ema_params, opt_state, step, ...}) after one optimiser update with
+  `grads` and the EMA with its warm-up, min(ema_decay, (1 + step) / (10 + step)); other
+  entries pass through."""
+  updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
+  params = optax.apply_updates(state["params"], updates)
+  step = state["step"] + 1
+  decay = jnp.minimum(ema_decay, (1.0 + step) / (10.0 + step))
+  ema = jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, state["ema_params"], params)
+  return {**state, "params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
+
+
+def training_data(config: DiffusionConfig, *, delta: bool = False
+                  ) -> tuple[dict, int, str, dict]:
+  """(arrays {x0, q[, ego][, class_weight][, delta]}, Q, dataset id, tokens metadata) of
+  the training split; `class_weight` (M,) only where `diffusion.class_weights` is not all
+  1; `delta` (M,), the tokens' uncertainty, where asked for (distillation)."""
   d = config.diffusion
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
                                       dataset_id=dataset_id, num_scenarios=len(scenarios))
   data, controls = {"q": toks.q.astype(np.int32)}, scenarios.controls
+  if delta:
+    data["delta"] = np.asarray(toks.delta, np.float32)
   if d.conditioning != "token":
     data["ego"] = np.asarray(ego_motion.ego_features(scenarios.xi, scenarios.mask))
     if ego_motion.uses_residual(d.conditioning):

@@ -1,0 +1,54 @@
+"""Distillation config (`cvmdx_jax.train.distill`, beyond the paper): one stage from a teacher.
+
+Run (after train_diffusion):
+  .venv/bin/python experiments/distill.py --config=configs/distill.py:demo \\
+      --config.teacher_dir=runs/demo/diffusion --workdir=runs/demo/distill_guidance
+  .venv/bin/python experiments/distill.py --config=configs/distill.py:demo \\
+      --config.teacher_dir=runs/demo/distill_guidance --config.steps=2 \\
+      --workdir=runs/demo/distill
+A guided denoiser teaches a guidance student (w as an input, one U-Net evaluation per
+step); a guidance student teaches a progressive student for `steps` steps (halving the
+steps of a progressive teacher). Presets after the path: `:tiny` (seconds, tests), `:demo`
+(the `make demo` stage on 2 cores). Any field can be overridden:
+`--config.train.num_epochs=20`; the entry point checks every field once
+(`cvmdx_jax.runs.config.DistillConfig`).
+"""
+
+import ml_collections
+
+from configs import common
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+  """Returns the distillation config for `arg` (see the module docstring)."""
+  arg = common.parse_arg(arg, tiny=False, demo=False)
+  config = ml_collections.ConfigDict()
+  config.teacher_dir = "runs/diffusion"  # the teacher run (diffusion or distillation)
+  config.data_dir = ""  # "" = the teacher's (its config.json)
+  config.tokenizer_dir = ""  # "" = the teacher's
+  config.seed = 0  # noise, timesteps, example order, the new FiLM layer
+  config.steps = 4  # S: the student's sampling steps (sampler "distilled")
+
+  config.train = ml_collections.ConfigDict()
+  config.train.batch_size = 256  # global batch
+  config.train.num_epochs = 20  # epochs over the teacher's train split
+  config.train.learning_rate = 1e-4  # peak AdamW lr
+  config.train.warmup_steps = 100  # linear warm-up; capped at 10 % of the run
+  config.train.min_lr = 1e-6  # end of the cosine decay
+  config.train.weight_decay = 0.0  # AdamW decoupled weight decay
+  config.train.grad_clip = 1.0  # global-norm clipping
+  config.train.ema_decay = 0.999  # EMA of the weights used for inference
+  config.train.checkpoint_every = 5  # epochs between checkpoints
+  config.train.keep = 2  # checkpoints kept
+
+  if arg.tiny:
+    config.train.batch_size = 16
+    config.train.num_epochs = 1
+    config.train.learning_rate = 1e-3
+    config.train.checkpoint_every = 1
+  if arg.demo:
+    config.train.batch_size = 128
+    config.train.num_epochs = 8
+    config.train.learning_rate = 3e-4
+    config.train.checkpoint_every = 2
+  return config

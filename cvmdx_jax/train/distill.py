@@ -1,0 +1,225 @@
+"""Distillation of a trained denoiser into a few-step student, on the shared loop.
+
+One run is one stage (`diffusion.distillation`), chosen by the teacher:
+- a guided denoiser (a diffusion run) teaches a *guidance student*: the same U-Net with
+  the guidance weight w as one more FiLM feature, initialised from the teacher with a
+  zero weight row for w (a token-only teacher gets a new FiLM MLP whose output layer is
+  zero), so that before training it returns the teacher's conditional v;
+- a guidance student teaches a *progressive student* for `steps` steps, sampled by the
+  teacher at 2 `steps` (a progressive teacher must have been distilled for 2 `steps`).
+
+x_t is the training data noised by the forward process (t uniform over the T steps for
+the guidance stage, over the student's grid for the progressive one), w = w(t, delta)
+with the teacher's guidance settings and each scenario's token uncertainty, the loss the
+weighted mean squared v error (the teacher's class weights). The run directory is a
+diffusion run directory (config.json = the student's `DiffusionConfig`, sampler
+"distilled"; checkpoints with the EMA parameters), so `Predictor.load` and
+`evaluate.py --diffusion_dir` take it as they are; its fingerprint adds the teacher's
+fingerprint and the content id of its parameters, so a resume with another teacher is
+refused.
+"""
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from cvmdx_jax import ego_motion
+from cvmdx_jax.diffusion import cosine_schedule, guidance_weight, guided_v_fn, param
+from cvmdx_jax.diffusion import distillation
+from cvmdx_jax.models import unet1d
+from cvmdx_jax.runs import fingerprints, layout, loaders
+from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig
+from cvmdx_jax.storage import identity, locking
+from cvmdx_jax.train import diffusion as diffusion_train
+from cvmdx_jax.train import loop
+
+STAGES = ("guidance", "progressive")
+
+
+class TeacherMismatchError(ValueError):
+  """The teacher cannot teach this run (wrong kind, steps or data)."""
+
+
+def stage_of(teacher: DiffusionConfig) -> str:
+  """"guidance" for a guided denoiser, "progressive" for a guidance student."""
+  return "progressive" if teacher.diffusion.guidance_input else "guidance"
+
+
+def student_config(teacher: DiffusionConfig, config: DistillConfig) -> DiffusionConfig:
+  """The student's run config: the teacher's with w as an input (guidance stage), the
+  distillation's seed and optimiser, and the distilled sampler at `config.steps`."""
+  diffusion = dataclasses.replace(teacher.diffusion, guidance_input=True)
+  sampling = dataclasses.replace(teacher.sampling, sampler="distilled", steps=config.steps,
+                                 mode="paper")
+  return dataclasses.replace(
+      teacher, data_dir=config.data_dir or teacher.data_dir,
+      tokenizer_dir=config.tokenizer_dir or teacher.tokenizer_dir, seed=config.seed,
+      model=dataclasses.replace(teacher.model, cond_dim=diffusion.cond_dim),
+      diffusion=diffusion, train=config.train, sampling=sampling)
+
+
+def _paths(tree, prefix=()):
+  if isinstance(tree, dict):
+    for k, v in tree.items():
+      yield from _paths(v, prefix + (k,))
+  else:
+    yield prefix, tree
+
+
+def _get(tree, path):
+  for k in path:
+    if not isinstance(tree, dict) or k not in tree:
+      return None
+    tree = tree[k]
+  return tree
+
+
+def student_params(teacher_params: dict, fresh: dict) -> dict:
+  """The student's initial parameters: `fresh` (the student's own init) with every
+  teacher leaf of the same path and shape; the teacher's first FiLM layer gets a zero
+  row for w; a FiLM MLP the teacher lacks keeps its fresh first layer and a zero output
+  layer (so the student's output equals the teacher's conditional v)."""
+  out = {}
+  for path, leaf in _paths(fresh):
+    old = _get(teacher_params, path)
+    if old is not None and old.shape == leaf.shape:
+      new = old
+    elif old is not None and path[-1] == "kernel" and old.shape[1:] == leaf.shape[1:]:
+      new = jnp.concatenate([old, jnp.zeros((leaf.shape[0] - old.shape[0],) + leaf.shape[1:],
+                                            leaf.dtype)])
+    elif old is None and path[0] == "cond_mlp2":
+      new = jnp.zeros_like(leaf)
+    elif old is None and path[0] == "cond_mlp1":
+      new = leaf
+    else:
+      raise TeacherMismatchError(f"student parameter {'/'.join(map(str, path))} "
+                                 f"{leaf.shape} has no teacher counterpart "
+                                 f"({None if old is None else old.shape})")
+    node = out
+    for k in path[:-1]:
+      node = node.setdefault(k, {})
+    node[path[-1]] = new
+  return out
+
+
+def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
+  """init_fn(key) -> {params, ema_params, opt_state, step, teacher}."""
+
+  def init_fn(key):
+    _, fresh = unet1d.init_unet(cfg, key)
+    params = student_params(teacher_params, fresh)
+    return {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
+            "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
+            "teacher": jax.tree.map(jnp.copy, teacher_params)}
+  return init_fn
+
+
+def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, stage: str):
+  """The pure train step: the teacher's v-target at noised data, the student's v-loss,
+  AdamW and the EMA (`train.diffusion.apply_gradients`)."""
+  d = student.diffusion
+  schedule = cosine_schedule(d.num_steps)
+  guidance, steps, clip = student.sampling.guidance, student.sampling.steps, \
+      student.sampling.clip_x0
+  graphdef = unet1d.make_graphdef(student.model)
+  film = ego_motion.uses_film(d.conditioning)
+
+  def step_fn(state, batch, key):
+    k_t, k_eps = jax.random.split(key)
+    x0, q, delta = batch["x0"], batch["q"], batch["delta"]
+    ego = batch["ego"] if film else None
+    eps = jax.random.normal(k_eps, x0.shape, x0.dtype)
+    w_of = lambda t: guidance_weight(t, delta, d.num_steps, guidance)
+    if stage == "guidance":
+      t = jax.random.randint(k_t, (x0.shape[0],), 0, d.num_steps)
+      abar_t = schedule.alphas_cumprod[t]
+      x_t = param.q_sample(x0, eps, abar_t)
+      # the guided pair runs both branches in one call of 2B rows
+      pair = lambda x: None if ego is None else jnp.tile(ego, (x.shape[0] // ego.shape[0], 1))
+      model = lambda x, tt, c: unet1d.apply_unet(teacher.graphdef, state["teacher"], x, tt, c,
+                                                 cond=pair(x))
+      target = guided_v_fn(model, q, teacher.null_token, delta, schedule, guidance)(x_t, t)
+    else:
+      index = jax.random.randint(k_t, (x0.shape[0],), 0, steps)
+      t, t_mid, abar_t, abar_mid, abar_next = distillation.progressive_grid(schedule, steps,
+                                                                             index)
+      x_t = param.q_sample(x0, eps, abar_t)
+      model = lambda x, tt: unet1d.apply_unet(teacher.graphdef, state["teacher"], x, tt, q,
+                                              cond=distillation.student_cond(ego, w_of(tt)))
+      target = distillation.progressive_target(model, x_t, t, t_mid, abar_t, abar_mid,
+                                               abar_next, clip)
+    target = jax.lax.stop_gradient(target)
+    cond = distillation.student_cond(ego, w_of(t))
+    weight = batch["weight"] * batch.get("class_weight", 1.0)
+
+    def loss_fn(params):
+      err = (unet1d.apply_unet(graphdef, params, x_t, t, q, cond=cond) - target) ** 2
+      per_example = jnp.mean(err.reshape(err.shape[0], -1), axis=-1)
+      return jnp.sum(weight * per_example) / jnp.maximum(jnp.sum(weight), 1.0)
+
+    loss, grads = jax.value_and_grad(loss_fn)(state["params"])
+    return (diffusion_train.apply_gradients(state, grads, tx, student.train.ema_decay),
+            {"loss": loss, "grad_norm": optax.tree.norm(grads)})
+
+  return step_fn
+
+
+def check_teacher(teacher: loaders.Denoiser, config: DistillConfig) -> str:
+  """The stage the teacher teaches; TeacherMismatchError where it cannot teach this run."""
+  stage = stage_of(teacher.config)
+  taught = teacher.fingerprint.to_dict().get("distill", {})
+  if taught.get("stage") == "progressive" and teacher.config.sampling.steps != 2 * config.steps:
+    raise TeacherMismatchError(
+        f"teacher {config.teacher_dir} is a progressive student for "
+        f"{teacher.config.sampling.steps} steps: it teaches a student for "
+        f"{teacher.config.sampling.steps // 2} steps, not steps={config.steps}")
+  if 2 * config.steps >= teacher.config.diffusion.num_steps:
+    raise TeacherMismatchError(f"steps={config.steps}: the teacher's grid of 2 x steps must "
+                               f"stay below T = {teacher.config.diffusion.num_steps}")
+  return stage
+
+
+@locking.holds("workdir")
+def train(config: DistillConfig, workdir: str | os.PathLike):
+  """Distils the teacher run `config.teacher_dir` into `workdir` (resuming if possible);
+  returns the final state.
+
+  Raises:
+    TeacherMismatchError: the teacher cannot teach this run (a progressive student of
+      other steps) or its fingerprint does not name the data / tokens at hand.
+    CheckpointMismatchError: the workdir's checkpoint belongs to another run (e.g.
+      another teacher: the message names `distill.teacher.params_id`).
+  """
+  teacher = loaders.load_denoiser(config.teacher_dir)
+  stage = check_teacher(teacher, config)
+  student = student_config(teacher.config, config)
+  data, num_tokens, dataset_id, tokens_meta = diffusion_train.training_data(student, delta=True)
+  fingerprint = fingerprints.diffusion(student, dataset_id, tokens_meta)
+  saved = teacher.fingerprint.to_dict()
+  identity.check({k: saved.get(k) for k in ("dataset_id", "tokenizer")},
+                 {k: fingerprint[k] for k in ("dataset_id", "tokenizer")},
+                 f"teacher {config.teacher_dir} (trained on other data or tokens than "
+                 f"{student.data_dir} / {student.tokenizer_dir})", TeacherMismatchError)
+  if num_tokens != teacher.config.model.num_tokens:
+    raise TeacherMismatchError(f"teacher {config.teacher_dir} has "
+                               f"{teacher.config.model.num_tokens} tokens, the tokens have "
+                               f"{num_tokens}")
+  train_cfg = {k: v for k, v in dataclasses.asdict(config.train).items()
+               if k not in ("checkpoint_every", "keep")}
+  fingerprint["distill"] = {
+      "stage": stage, "steps": config.steps, "train": train_cfg,
+      "guidance": dataclasses.asdict(student.sampling.guidance),
+      "clip_x0": student.sampling.clip_x0,
+      "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
+  total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
+  tx = diffusion_train.optimizer(config.train, total_steps)
+  return loop.train(
+      workdir=workdir, init_fn=make_init_fn(teacher.params, student.model, tx),
+      step_fn=make_step_fn(teacher, student, tx, stage=stage), data=data,
+      batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
+      fingerprint=fingerprint, checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep, on_start=lambda: layout.write_run_config(workdir, student),
+      desc=f"distill ({stage})")
