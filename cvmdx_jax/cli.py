@@ -3,6 +3,8 @@
 A user's mistake ends the same way in every script: one line
 `<script>: error: <message>` on stderr naming the flag, file or field, exit status 2,
 no traceback. User errors are
+- a bad value of `CVMDX_ALLOCATOR` (`host_allocator`), `CVMDX_WINOGRAD` or
+  `CVMDX_GROUP_NORM_BACKWARD` (`models.performance`), found before the flags;
 - flag errors, found before `main` starts: an unknown flag, a value of the wrong type
   or out of range (`lower_bound=`, validators), a required flag left out, an unknown
   config preset or field, a config file that cannot be loaded, a config field that is
@@ -41,6 +43,7 @@ from ml_collections.config_flags.config_flags import is_config_flag
 
 from cvmdx_jax import host_allocator
 from cvmdx_jax.config_dataclass import ConfigFieldError
+from cvmdx_jax.models import performance
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
@@ -102,12 +105,14 @@ def machine_failure(exc: BaseException) -> str | None:
 def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None:
   """`absl.app.run(main)` with the user-error handling of the module docstring; with
   `allocator` (the training entry points) in a process re-executed once with the
-  allocator of `host_allocator` (Linux; not for `--help`)."""
-  if allocator:
-    try:
+  allocator of `host_allocator` (Linux; not for `--help`). Both check their environment
+  variables first (`models.performance`, `host_allocator`)."""
+  try:
+    performance.current()  # a bad CVMDX_WINOGRAD etc. is one line, before any work
+    if allocator:
       host_allocator.reexec_with_allocator()
-    except ValueError as e:
-      fail(str(e))
+  except ValueError as e:
+    fail(str(e))
 
   def guarded(argv):
     try:

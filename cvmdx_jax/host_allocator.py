@@ -11,7 +11,16 @@ that keeps freed pages mapped removes that. The training entry points
   or the path in `CVMDX_JEMALLOC`;
 - otherwise glibc's own allocator told not to use `mmap` or trim, in one arena
   (`GLIBC_TUNABLES`).
-Only on Linux. `CVMDX_ALLOCATOR=system` keeps the process as started (the tests set it).
+Only on Linux. The choice is the option `CVMDX_ALLOCATOR`:
+- `auto` (or unset): the above, except where `JAX_PLATFORMS` names an accelerator first
+  (`cuda`, `gpu`, `rocm`, `tpu`, ...): there the large buffers live in device memory, and
+  the process is left as started (XLA's plain setting, as for the other performance
+  options, `models.performance`). Without `JAX_PLATFORMS` a GPU host is not detected (that
+  would need JAX imported) and gets the re-execution: harmless, ~1.6 s of start-up;
+- `jemalloc`: jemalloc or an error where it is not found; `glibc`: the tunables even
+  where jemalloc is installed;
+- `system`: the process as started (the tests set it).
+Any other value is a `ValueError` naming the variable (`cli.run`: one line, exit 2).
 The price: the process keeps its peak memory until it exits (the peak itself is unchanged),
 and the re-execution imports the script's modules twice (~1.6 s of start-up), which is why
 only the trainers pay it, and not for `--help` (`HELP_FLAGS`).
@@ -21,7 +30,8 @@ import os
 import sys
 from collections.abc import Mapping
 
-OPT_OUT = "CVMDX_ALLOCATOR"  # "system": leave the allocator alone
+OPT_OUT = "CVMDX_ALLOCATOR"  # the option; "system": leave the allocator alone
+CHOICES = ("auto", "jemalloc", "glibc", "system")
 APPLIED = "CVMDX_ALLOCATOR_APPLIED"  # set in the re-executed process
 JEMALLOC_ENV = "CVMDX_JEMALLOC"  # path of libjemalloc.so.2, overrides the search
 JEMALLOC_PATHS = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
@@ -38,6 +48,13 @@ def _joined(environ: Mapping[str, str], name: str, value: str, sep: str) -> str:
   return f"{value}{sep}{old}" if old else value
 
 
+def accelerator_requested(environ: Mapping[str, str]) -> bool:
+  """Whether `JAX_PLATFORMS` in `environ` names a platform other than "cpu" first (JAX's
+  default backend is the first it lists)."""
+  platforms = [p.strip() for p in environ.get("JAX_PLATFORMS", "").split(",") if p.strip()]
+  return bool(platforms) and platforms[0] != "cpu"
+
+
 def allocator_environment(environ: Mapping[str, str], platform: str = sys.platform,
                           exists=os.path.isfile) -> dict[str, str] | None:
   """The environment to re-execute with, or None to keep this process as it is.
@@ -49,28 +66,45 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
 
   Returns:
     A copy of `environ` with the allocator settings of the module docstring and `APPLIED`
-    set; None on other platforms, after `CVMDX_ALLOCATOR=system`, or when already applied.
+    set; None on other platforms, after `CVMDX_ALLOCATOR=system`, for `auto` where
+    `accelerator_requested`, or when already applied.
 
   Raises:
-    ValueError: `CVMDX_ALLOCATOR` is not "system" or empty, or `CVMDX_JEMALLOC` names
-      a file that does not exist.
+    ValueError: `CVMDX_ALLOCATOR` is not one of `CHOICES` or empty, `CVMDX_JEMALLOC`
+      names a file that does not exist, or `jemalloc` is asked for and not found.
   """
-  choice = environ.get(OPT_OUT, "")
-  if choice not in ("", "system"):
-    raise ValueError(f"{OPT_OUT}={choice!r}: expected 'system' or unset")
-  if choice == "system" or environ.get(APPLIED) or not platform.startswith("linux"):
+  choice = environ.get(OPT_OUT, "") or "auto"
+  if choice not in CHOICES:
+    raise ValueError(f"{OPT_OUT}={choice!r}: expected one of {', '.join(CHOICES)}")
+  if (choice == "system" or environ.get(APPLIED) or not platform.startswith("linux")
+      or (choice == "auto" and accelerator_requested(environ))):
     return None
   env = dict(environ, **{APPLIED: "1"})
-  given = environ.get(JEMALLOC_ENV)
-  if given and not exists(given):
-    raise ValueError(f"{JEMALLOC_ENV}={given}: no such file")
-  jemalloc = given or next((p for p in JEMALLOC_PATHS if exists(p)), None)
+  jemalloc = None if choice == "glibc" else _find_jemalloc(environ, exists)
   if jemalloc:
     env["LD_PRELOAD"] = _joined(environ, "LD_PRELOAD", jemalloc, ":")
     env["MALLOC_CONF"] = _joined(environ, "MALLOC_CONF", JEMALLOC_CONF, ",")
+  elif choice == "jemalloc":
+    raise ValueError(f"{OPT_OUT}=jemalloc: libjemalloc.so.2 is not in {', '.join(JEMALLOC_PATHS)}"
+                     f" (install libjemalloc2, or name it in {JEMALLOC_ENV})")
   else:
     env["GLIBC_TUNABLES"] = _joined(environ, "GLIBC_TUNABLES", GLIBC_TUNABLES, ":")
   return env
+
+
+def _find_jemalloc(environ: Mapping[str, str], exists) -> str | None:
+  """`CVMDX_JEMALLOC` (checked) or the first of `JEMALLOC_PATHS` that exists, else None."""
+  given = environ.get(JEMALLOC_ENV)
+  if given and not exists(given):
+    raise ValueError(f"{JEMALLOC_ENV}={given}: no such file")
+  return given or next((p for p in JEMALLOC_PATHS if exists(p)), None)
+
+
+def in_force(environ: Mapping[str, str]) -> str:
+  """What this process runs with: "jemalloc", "glibc tunables" or "system" (for reports)."""
+  if not environ.get(APPLIED):
+    return "system"
+  return "jemalloc" if "libjemalloc" in environ.get("LD_PRELOAD", "") else "glibc tunables"
 
 
 def reexec_with_allocator() -> None:

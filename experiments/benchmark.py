@@ -1,14 +1,24 @@
 """End-to-end speed of cVMDx on this machine, side by side in one run.
 
-  .venv/bin/python experiments/benchmark.py [--reference_batch=256]
+  .venv/bin/python experiments/benchmark.py [--reference_batch=256] [--performance=off]
 
-Prints, for the CPU default U-Net (configs/diffusion.py:demo) and the reference-size
-U-Net (configs/diffusion.py:paper): the full jitted predict path (9 samples, DDIM 10,
-uncertainty-aware CFG, VMM, GMM/BIC hypotheses) at 1 and B scenarios per call
-(latency, ms per scenario, scenarios/s, achieved GFLOP/s from XLA's count of one
-U-Net forward), the same with the default sampler (configs/diffusion.py, no preset),
-DDPM(1000) against DDIM(10) and against the default sampler for one scenario, and
-training steps/s at batch 256. Weights are random: speed does not depend on them.
+Prints the backend, its devices, the performance options in force (`models.performance`,
+`--performance`) and the host allocator, then, for the CPU default U-Net
+(configs/diffusion.py:demo) and the reference-size U-Net (configs/diffusion.py:paper): the
+full jitted predict path (9 samples, DDIM 10, uncertainty-aware CFG, VMM, GMM/BIC
+hypotheses) at 1 and B scenarios per call (latency, ms per scenario, scenarios/s, achieved
+GFLOP/s from XLA's count of one U-Net forward), the same with the default sampler
+(configs/diffusion.py, no preset), DDPM(1000) against DDIM(10) and against the default
+sampler for one scenario, and training steps/s at batch 256. The B = 1 lines also give the
+first call (trace + compile + run; a compile can be a read of JAX's persistent cache where
+`JAX_COMPILATION_CACHE_DIR` is set) apart from the median of the warm calls. Weights are
+random: speed does not depend on them. Runs unchanged on any backend.
+
+  .venv/bin/python experiments/benchmark.py --performance=all
+
+times instead the official-size prediction and training step below with each combination
+of the options `winograd` and `group_norm_backward` on and off, as a table (the measurement
+behind "auto" on a backend).
 
 Against the official code (../shared/reference_bench, run its official_timing.py first):
 
@@ -20,11 +30,14 @@ times only the official-size U-Net (configs/diffusion.py:reference with Q = 256 
 {"params", "b1": {"total"}, "big": {"total", "b"}, "train": {"step", "batch"}}: seconds
 per call for 1 and for 32 (--big) scenarios end to end (sampling, VMM, hypotheses; the official
 "total" is DDIM + post-processing per call), and per AdamW step at batch 256; medians
-of repeated calls after a warm-up. With --official_json it prints official / ours.
+of repeated calls after a warm-up. Ours also holds "b1": {"first"}, the first call (trace +
+compile + run), which the official JSON does not have. With --official_json it prints
+official / ours.
 """
 
 import dataclasses
 import json
+import os
 import statistics
 import time
 from pathlib import Path
@@ -34,12 +47,13 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
-from cvmdx_jax import cli, diffusion, ego_motion
+from cvmdx_jax import cli, diffusion, ego_motion, host_allocator
 from cvmdx_jax.inference import sampling as sampling_lib
 from cvmdx_jax.runs.config import DiffusionConfig
 from cvmdx_jax.targets import DenoiserConfig
 from cvmdx_jax.storage import atomic
-from cvmdx_jax.models import unet1d
+from cvmdx_jax.models import performance, unet1d
+from cvmdx_jax.models.performance import PerformanceOptions
 from cvmdx_jax.train import diffusion as diffusion_train
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
@@ -58,23 +72,36 @@ _BIG = flags.DEFINE_integer("big", 32, "Scenarios per call of the reference 'big
 _SAMPLER = flags.DEFINE_string("sampler", None, "Sampler timed as the default "
                                "(default: configs/diffusion.py without a preset).")
 _STEPS = flags.DEFINE_integer("steps", None, "Steps of --sampler (default: the config's).")
+_PERFORMANCE = flags.DEFINE_enum(
+    "performance", None, ["auto", "on", "off", "all"], "Performance options "
+    "(cvmdx_jax/models/performance.py) of the run: auto, on or off for all of them (default: "
+    "as CVMDX_WINOGRAD, CVMDX_GROUP_NORM_BACKWARD set them); all: instead, the official-size "
+    "timings with each combination of on and off, as a table.")
 NUM_TOKENS = 60
 REFERENCE_TOKENS = 256  # the official model: num_classes = 257 = Q + the null token
 # (warm-up calls, timed calls) of the reference timings: b1, big, train
 REFERENCE_REPEATS = {"b1": (1, 7), "big": (1, 3), "train": (2, 5)}
+# --performance=all: each combination of the options
+OPTION_COMBINATIONS = tuple(PerformanceOptions(winograd, norm)
+                            for winograd in ("on", "off") for norm in ("on", "off"))
 _predict_batch = jax.jit(sampling_lib.predict_batch, static_argnames=sampling_lib.STATIC_ARGNAMES)
+
+
+def time_calls(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
+  """(seconds of the first call, median seconds of the `repeats` calls after `warmup`
+  calls) of `fn`; the first call is the first warm-up call where there is one (for a
+  function not called before: trace, compile and run)."""
+  times = []
+  for _ in range(warmup + repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    times.append(time.perf_counter() - start)
+  return times[0], statistics.median(times[warmup:])
 
 
 def _time(fn, repeats, warmup=1):
   """Median seconds of `repeats` calls of `fn` after `warmup` untimed calls."""
-  for _ in range(warmup):
-    jax.block_until_ready(fn())
-  times = []
-  for _ in range(repeats):
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    times.append(time.perf_counter() - start)
-  return statistics.median(times)
+  return time_calls(fn, repeats, warmup)[1]
 
 
 def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
@@ -87,17 +114,35 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_timing(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
-                   num_tokens: int = NUM_TOKENS, warmup: int = 1,
-                   denoiser_config: DenoiserConfig = DenoiserConfig()):
-  """Median seconds of one jitted `predict_batch` call for `b` scenarios."""
+def predict_calls(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
+                  num_tokens: int = NUM_TOKENS, warmup: int = 1,
+                  denoiser_config: DenoiserConfig = DenoiserConfig()) -> tuple[float, float]:
+  """`time_calls` of one jitted `predict_batch` call for `b` scenarios: (first, median) s."""
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(
       graphdef, params, jnp.arange(b) % num_tokens, jnp.full(b, 5.0), jnp.full(b, 30.0),
       jnp.zeros(b), keys, jnp.zeros((b, ego_motion.NUM_FEATURES)), schedule=schedule,
       null_token=num_tokens, config=config, denoiser_config=denoiser_config)
-  return _time(call, repeats, warmup)
+  return time_calls(call, repeats, warmup)
+
+
+def predict_timing(*args, **kwargs) -> float:
+  """Median seconds of one jitted `predict_batch` call for `b` scenarios (`predict_calls`)."""
+  return predict_calls(*args, **kwargs)[1]
+
+
+def predict_line(label: str, b: int, seconds: float, gflop: float | None = None,
+                 first: float | None = None) -> str:
+  """One line of prediction timings: `seconds` per call of `b` scenarios; achieved GFLOP/s
+  from `gflop` per scenario; the `first` call's seconds beside them."""
+  line = (f"predict  B={b:4d}{label}: {seconds:8.3f} s/call  {1000 * seconds / b:8.1f} "
+          f"ms/scenario  {b / seconds:7.1f} scenarios/s")
+  if gflop:
+    line += f"  {gflop * b / seconds:6.1f} GFLOP/s"
+  if first is not None:
+    line += f"  (first call {first:.2f} s: trace, compile, run)"
+  return line
 
 
 def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int = 1):
@@ -132,17 +177,19 @@ def reference_timings(config: DiffusionConfig, num_tokens: int,
   """Timings in the ../shared/reference_bench schema, seconds (medians).
 
   Returns:
-    {"params", "sampler", "steps", "b1": {"total"}, "big": {"total", "b"},
-     "train": {"step", "batch"}}; "total" is one predict_batch call end to end.
+    {"params", "sampler", "steps", "b1": {"total", "first"}, "big": {"total", "b"},
+     "train": {"step", "batch"}}; "total" is one predict_batch call end to end, "first"
+    the first one (trace, compile and run).
   """
   config = config.with_tokens(num_tokens)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(0))
-  timed = lambda b, key: predict_timing(graphdef, params, b, sampling, repeats[key][1],
-                                        num_tokens, repeats[key][0], config.diffusion)
+  timed = lambda b, key: predict_calls(graphdef, params, b, sampling, repeats[key][1],
+                                       num_tokens, repeats[key][0], config.diffusion)
   train_warmup, train_repeats = repeats["train"]
+  first, b1 = timed(1, "b1")
   return {"params": unet1d.count_params(params), "sampler": sampling.sampler,
-          "steps": sampling.steps, "b1": {"total": timed(1, "b1")},
-          "big": {"total": timed(big, "big"), "b": big},
+          "steps": sampling.steps, "b1": {"total": b1, "first": first},
+          "big": {"total": timed(big, "big")[1], "b": big},
           "train": {"step": train_timing(config, train_batch, train_repeats, train_warmup),
                     "batch": train_batch}}
 
@@ -180,15 +227,58 @@ def ratio_table(official: dict, ours: dict) -> str:
   return "\n".join(lines)
 
 
+def run_options(choice: str | None, in_force: PerformanceOptions) -> PerformanceOptions:
+  """The performance options of a run: `in_force` (the environment's) without a
+  --performance choice or with "all" (which sets each combination itself), else `choice`
+  for every option."""
+  if choice in (None, "all"):
+    return in_force
+  return PerformanceOptions(**dict.fromkeys(dataclasses.asdict(in_force), choice))
+
+
+def performance_table(rows: list[tuple[PerformanceOptions, dict]], platform: str) -> str:
+  """Markdown table of (options, `reference_timings`) rows; the column "auto" marks the
+  row that "auto" takes on `platform`."""
+  auto = PerformanceOptions().resolved(platform)
+  lines = [f"| winograd | group_norm_backward | auto on {platform} | B=1 first call | B=1 | "
+           "B=big per scenario | training step |", "|---|---|---|---|---|---|---|"]
+  for options, t in rows:
+    lines.append(f"| {options.winograd} | {options.group_norm_backward} | "
+                 f"{'x' if options.resolved(platform) == auto else ''} | "
+                 f"{t['b1']['first']:.2f} s | {t['b1']['total']:.3f} s | "
+                 f"{t['big']['total'] / t['big']['b']:.3f} s (B={t['big']['b']}) | "
+                 f"{t['train']['step']:.3f} s (batch {t['train']['batch']}) |")
+  return "\n".join(lines)
+
+
+def _reference_setup() -> tuple[DiffusionConfig, sampling_lib.SamplingConfig]:
+  """The official-size config (configs/diffusion.py:reference) and its default sampling."""
+  config = DiffusionConfig.from_config(diffusion_config.get_config("reference"))
+  return config, default_sampling(config.sampling)
+
+
+def performance_main():
+  """--performance=all: the official-size timings with each of `OPTION_COMBINATIONS`."""
+  config, sampling = _reference_setup()
+  rows = []
+  for options in OPTION_COMBINATIONS:
+    with performance.use(options):
+      rows.append((options, reference_timings(config, REFERENCE_TOKENS, sampling,
+                                              big=_BIG.value, train_batch=_TRAIN_BATCH.value)))
+    print(f"timed {options}", flush=True)
+  print(f"\nofficial size, {sampling.sampler} {sampling.steps} steps, on "
+        f"{jax.default_backend()}:\n{performance_table(rows, jax.default_backend())}")
+
+
 def reference_main():
   """--reference_json / --official_json: the official-size timings and the ratio table."""
   official = read_timings(_OFFICIAL_JSON.value) if _OFFICIAL_JSON.value else None
-  config = DiffusionConfig.from_config(diffusion_config.get_config("reference"))
-  sampling = default_sampling(config.sampling)
+  config, sampling = _reference_setup()
   ours = reference_timings(config, REFERENCE_TOKENS, sampling, big=_BIG.value)
   print(f"reference size: {ours['params'] / 1e6:.2f} M parameters, {sampling.sampler} "
-        f"{sampling.steps} steps: B=1 {ours['b1']['total']:.3f} s, B={ours['big']['b']} "
-        f"{ours['big']['total']:.3f} s, train {ours['train']['step']:.3f} s/step")
+        f"{sampling.steps} steps: B=1 {ours['b1']['total']:.3f} s (first call "
+        f"{ours['b1']['first']:.2f} s), B={ours['big']['b']} {ours['big']['total']:.3f} s, "
+        f"train {ours['train']['step']:.3f} s/step")
   if _REFERENCE_JSON.value:
     atomic.write_json(_REFERENCE_JSON.value, ours, indent=1)
   if official is not None:
@@ -197,10 +287,22 @@ def reference_main():
 
 def main(argv):
   del argv
-  print(f"devices: {jax.devices()}")
-  if _REFERENCE_JSON.value or _OFFICIAL_JSON.value:
-    reference_main()
-    return
+  options = run_options(_PERFORMANCE.value, performance.current())
+  backend = jax.default_backend()
+  print(f"backend: {backend}; devices: {jax.devices()}")
+  print(f"performance options (on/off as taken here): {options.describe(backend)}; "
+        f"host allocator: {host_allocator.in_force(os.environ)}")
+  with performance.use(options):
+    if _PERFORMANCE.value == "all":
+      performance_main()
+    elif _REFERENCE_JSON.value or _OFFICIAL_JSON.value:
+      reference_main()
+    else:
+      default_main()
+
+
+def default_main():
+  """The timings of the module docstring's first command."""
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = DiffusionConfig.from_config(diffusion_config.get_config(preset)).with_tokens(
@@ -214,16 +316,14 @@ def main(argv):
     print(f"\n== {name}: {unet1d.count_params(params) / 1e6:.2f} M parameters, "
           f"{gflop:.3f} GFLOP per sample forward, {per_scenario:.1f} GFLOP per scenario "
           f"(9 samples x 10 steps x 2 for CFG)")
-    for b in (1, big):
-      sec = predict_timing(graphdef, params, b, ddim, _REPEATS.value,
+    for sampling, label, gflop in ((ddim, "", per_scenario),
+                                   (fast, f" {fast.sampler}({fast.steps})", None)):
+      first, sec = predict_calls(graphdef, params, 1, sampling, _REPEATS.value,
+                                 denoiser_config=targets)
+      print(predict_line(label, 1, sec, gflop, first))
+      sec = predict_timing(graphdef, params, big, sampling, _REPEATS.value,
                            denoiser_config=targets)
-      print(f"predict  B={b:4d}: {sec:8.3f} s/call  {1000 * sec / b:8.1f} ms/scenario  "
-            f"{b / sec:7.1f} scenarios/s  {per_scenario * b / sec:6.1f} GFLOP/s")
-    for b in (1, big):
-      sec = predict_timing(graphdef, params, b, fast, _REPEATS.value,
-                           denoiser_config=targets)
-      print(f"predict  B={b:4d} {fast.sampler}({fast.steps}): {sec:8.3f} s/call  "
-            f"{1000 * sec / b:8.1f} ms/scenario  {b / sec:7.1f} scenarios/s")
+      print(predict_line(label, big, sec, gflop))
     ddpm = dataclasses.replace(ddim, sampler="ddpm")
     t_ddim, t_fast, t_ddpm = (predict_timing(graphdef, params, 1, s, 1, denoiser_config=targets)
                               for s in (ddim, fast, ddpm))

@@ -1,4 +1,5 @@
-"""experiments/benchmark.py: the reference_bench JSON and the official / ours table."""
+"""experiments/benchmark.py: the reference_bench JSON and the official / ours table, the
+first-call timing, the performance options of a run and their table."""
 
 import json
 
@@ -6,6 +7,7 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.models.performance import PerformanceOptions
 from cvmdx_jax.runs.config import DiffusionConfig
 from cvmdx_jax.storage import atomic
 from experiments import benchmark
@@ -24,7 +26,7 @@ def test_reference_timings_schema_on_a_tiny_model(tmp_path):
   assert timings["sampler"] == "dpmpp2m" and timings["steps"] == 2
   assert timings["big"]["b"] == 3 and timings["train"]["batch"] == 4
   assert timings["params"] > 0
-  for group, field in (("b1", "total"), ("big", "total"), ("train", "step")):
+  for group, field in (("b1", "total"), ("b1", "first"), ("big", "total"), ("train", "step")):
     assert timings[group][field] > 0
   # what it returns is written as JSON that read_timings accepts unchanged
   atomic.write_json(tmp_path / "ours.json", timings, indent=1)
@@ -50,3 +52,43 @@ def test_read_timings_names_the_file_and_the_missing_field(tmp_path):
   path.write_text(json.dumps({"b1": {"total": 1.0}, "big": {"b": 32}, "train": {"step": 1}}))
   with pytest.raises(ValueError, match=r"broken.json: field big.total"):
     benchmark.read_timings(path)
+
+
+def test_time_calls_reports_the_first_call_apart_from_the_median(monkeypatch):
+  clock = {"now": 0.0}
+  durations = iter([9.0, 1.0, 3.0, 2.0])  # a compiling first call, then warm calls
+
+  def call():
+    clock["now"] += next(durations)
+  monkeypatch.setattr(benchmark.time, "perf_counter", lambda: clock["now"])
+  assert benchmark.time_calls(call, repeats=3, warmup=1) == (9.0, 2.0)
+  durations = iter([4.0, 1.0])
+  assert benchmark.time_calls(call, repeats=2, warmup=0) == (4.0, 2.5)  # first also timed
+
+
+def test_predict_line():
+  line = benchmark.predict_line(" dpmpp2m(3)", 1, 0.25, gflop=10.0, first=12.345)
+  assert line == ("predict  B=   1 dpmpp2m(3):    0.250 s/call     250.0 ms/scenario      4.0 "
+                  "scenarios/s    40.0 GFLOP/s  (first call 12.35 s: trace, compile, run)")
+  assert benchmark.predict_line("", 16, 2.0).endswith("8.0 scenarios/s")
+
+
+def test_run_options_and_the_combinations():
+  env = PerformanceOptions("off", "auto")
+  assert benchmark.run_options(None, env) == env and benchmark.run_options("all", env) == env
+  assert benchmark.run_options("on", env) == PerformanceOptions("on", "on")
+  assert len(set(benchmark.OPTION_COMBINATIONS)) == 4
+  assert {"on", "off"} == {o.winograd for o in benchmark.OPTION_COMBINATIONS}
+
+
+def test_performance_table_marks_what_auto_takes_per_platform():
+  t = {"b1": {"total": 0.5, "first": 20.0}, "big": {"total": 8.0, "b": 32},
+       "train": {"step": 3.0, "batch": 256}}
+  rows = [(PerformanceOptions("on", "on"), t), (PerformanceOptions("off", "off"), t)]
+  cpu = benchmark.performance_table(rows, "cpu").splitlines()
+  assert len(cpu) == 4 and "auto on cpu" in cpu[0]
+  assert cpu[2] == ("| on | on | x | 20.00 s | 0.500 s | 0.250 s (B=32) | "
+                    "3.000 s (batch 256) |")
+  assert cpu[3].startswith("| off | off |  |")
+  gpu = benchmark.performance_table(rows, "gpu").splitlines()
+  assert gpu[2].startswith("| on | on |  |") and gpu[3].startswith("| off | off | x |")

@@ -60,6 +60,7 @@ CASES = [
      "--diffusion_preset=nosuch"),
     ("benchmark", "--nosuch=1", "'nosuch'"),
     ("benchmark", "--repeats=0", "--repeats=0"),
+    ("benchmark", "--performance=fast", "--performance"),
     ("benchmark_sampling", "--nosuch=1", "'nosuch'"),
     ("benchmark_sampling", "--num_samples=2", "--num_samples=2"),
     ("codebook_health", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),

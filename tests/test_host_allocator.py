@@ -1,4 +1,5 @@
-"""The entry points' allocator choice (`cvmdx_jax.host_allocator`) and the re-execution."""
+"""The entry points' allocator choice (`cvmdx_jax.host_allocator`), the re-execution, and
+their check of the performance options' variables (`cvmdx_jax.models.performance`)."""
 
 import os
 import subprocess
@@ -44,8 +45,36 @@ def test_left_alone(environ, platform):
 
 
 def test_bad_choice_named():
-  with pytest.raises(ValueError, match="CVMDX_ALLOCATOR='jemalloc'"):
-    ha.allocator_environment({ha.OPT_OUT: "jemalloc"}, "linux")
+  with pytest.raises(ValueError, match="CVMDX_ALLOCATOR='jemaloc': expected one of auto, "):
+    ha.allocator_environment({ha.OPT_OUT: "jemaloc"}, "linux")
+
+
+@pytest.mark.parametrize("platforms, accelerator", [
+    ("", False), ("cpu", False), ("cpu,cuda", False), ("cuda", True), (" gpu , cpu", True),
+    ("tpu", True)])
+def test_auto_leaves_an_accelerator_process_alone(platforms, accelerator):
+  environ = {"JAX_PLATFORMS": platforms}
+  assert ha.accelerator_requested(environ) is accelerator
+  for choice in ("", "auto"):
+    env = ha.allocator_environment({**environ, ha.OPT_OUT: choice}, "linux",
+                                   exists=lambda p: False)
+    assert (env is None) is accelerator
+  # an explicit choice holds on any platform
+  env = ha.allocator_environment({**environ, ha.OPT_OUT: "glibc"}, "linux",
+                                 exists=lambda p: False)
+  assert ha.in_force(env) == "glibc tunables"
+
+
+def test_explicit_choices():
+  je = lambda p: p == JE
+  env = ha.allocator_environment({ha.OPT_OUT: "glibc", ha.JEMALLOC_ENV: JE}, "linux", exists=je)
+  assert "LD_PRELOAD" not in env and ha.in_force(env) == "glibc tunables"
+  env = ha.allocator_environment({ha.OPT_OUT: "jemalloc", ha.JEMALLOC_ENV: JE}, "linux",
+                                 exists=je)
+  assert env["LD_PRELOAD"] == JE and ha.in_force(env) == "jemalloc"
+  with pytest.raises(ValueError, match="CVMDX_ALLOCATOR=jemalloc: libjemalloc.so.2 is not"):
+    ha.allocator_environment({ha.OPT_OUT: "jemalloc"}, "linux", exists=lambda p: False)
+  assert ha.in_force({}) == "system"
 
 
 _SCRIPT = """
@@ -96,3 +125,11 @@ def test_other_entry_points_do_not_reexecute(tmp_path):
   proc = _entry_point(tmp_path, allocator=False)("a", "b")
   assert proc.returncode == 0, proc.stderr
   assert proc.stdout.splitlines() == ["start None", "None None ['a', 'b']"]
+
+
+@pytest.mark.parametrize("variable", ["CVMDX_WINOGRAD", "CVMDX_GROUP_NORM_BACKWARD"])
+def test_entry_points_refuse_a_bad_performance_option(tmp_path, variable):
+  proc = _entry_point(tmp_path, allocator=True)(**{variable: "fast"})
+  assert proc.returncode == 2 and proc.stdout.splitlines() == ["start None"]  # not re-executed
+  assert proc.stderr.strip().endswith(
+      f"error: {variable}='fast': expected one of auto, on, off"), proc.stderr

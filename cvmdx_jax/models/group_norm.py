@@ -14,6 +14,14 @@ GroupNorm and upsampling").
 
 The (B, G) -> (B, C) expansion is a product with a 0/1 matrix: XLA:CPU keeps a dot out of
 the loop fusions (an `optimization_barrier` does not survive its pipeline).
+
+All of this is the fast path of the performance option `group_norm_backward`
+(`models.performance`); `GroupNorm` takes it as the option says: "auto" (default) on the
+CPU backend only, chosen per platform when the function is lowered; "on" everywhere;
+"off" never, where `plain_group_norm` / `plain_group_norm_silu` (the reshape to groups of
+`nnx.GroupNorm`, autodiff) are traced instead: XLA's plain path, what other backends get.
+Set by `CVMDX_GROUP_NORM_BACKWARD=auto|on|off` or `performance.use`. `group_norm` and
+`group_norm_silu` themselves are always the fast path.
 """
 
 import functools
@@ -21,6 +29,8 @@ import functools
 import jax
 import jax.numpy as jnp
 from flax import nnx
+
+from cvmdx_jax.models import performance
 
 
 def _expand(v, group_size: int):
@@ -138,6 +148,30 @@ def _group_norm_silu_backward(groups, epsilon, residuals, dy):
 group_norm_silu.defvjp(_group_norm_silu_forward, _group_norm_silu_backward)
 
 
+def plain_group_norm(x, scale, bias, groups: int, epsilon: float):
+  """`group_norm` as `flax.nnx.GroupNorm` writes it (reshape to groups, the same fast
+  variance), for autodiff: XLA's plain path (module docstring)."""
+  b, length, channels = x.shape
+  _check_groups(channels, groups, "group_norm")
+  xg = x.reshape(b, length, groups, channels // groups)
+  mean = jnp.mean(xg, axis=(1, 3), keepdims=True)
+  var = jnp.maximum(jnp.mean(xg * xg, axis=(1, 3), keepdims=True) - mean * mean, 0.0)
+  return ((xg - mean) * jax.lax.rsqrt(var + epsilon)).reshape(x.shape) * scale + bias
+
+
+def plain_group_norm_silu(x, scale, bias, mod_scale, mod_shift, groups: int, epsilon: float):
+  """`group_norm_silu` from `plain_group_norm`, for autodiff."""
+  normed = plain_group_norm(x, scale, bias, groups, epsilon)
+  return jax.nn.silu(normed * _bcast(mod_scale) + _bcast(mod_shift))
+
+
+def _select(fast, plain, groups: int, epsilon: float, *args):
+  """fast or plain (each taking `groups, epsilon` last) on args, as the
+  `group_norm_backward` performance option says."""
+  return performance.select("group_norm_backward", lambda *a: fast(*a, groups, epsilon),
+                            lambda *a: plain(*a, groups, epsilon), *args)
+
+
 class GroupNorm(nnx.Module):
   """`group_norm` with learned `scale` (ones) and `bias` (zeros), the parameter names of
   `nnx.GroupNorm`, over inputs (B, L, C); `silu` gives silu(norm(x) m + c)."""
@@ -149,12 +183,13 @@ class GroupNorm(nnx.Module):
     self.bias = nnx.Param(jnp.zeros((num_features,)))
 
   def __call__(self, x):
-    return group_norm(x, self.scale[...], self.bias[...], self.num_groups, self.epsilon)
+    return _select(group_norm, plain_group_norm, self.num_groups, self.epsilon,
+                   x, self.scale[...], self.bias[...])
 
   def silu(self, x, mod_scale=None, mod_shift=None):
     """silu(self(x) mod_scale + mod_shift); mod_* (B, C), default ones / zeros."""
     b, c = x.shape[0], x.shape[-1]
     mod_scale = jnp.ones((b, c), x.dtype) if mod_scale is None else mod_scale
     mod_shift = jnp.zeros((b, c), x.dtype) if mod_shift is None else mod_shift
-    return group_norm_silu(x, self.scale[...], self.bias[...], mod_scale, mod_shift,
-                           self.num_groups, self.epsilon)
+    return _select(group_norm_silu, plain_group_norm_silu, self.num_groups, self.epsilon,
+                   x, self.scale[...], self.bias[...], mod_scale, mod_shift)

@@ -8,10 +8,17 @@ rounding (~5e-6 relative); its gradients come from autodiff through the same GEM
 forward and both backward convolutions do half the multiplies. On XLA:CPU 0.10 (2-core
 AVX-512, batch 256) forward + backward is 1.3-1.7x faster than `lax.conv_general_dilated`
 where both channel counts are >= 128, and not faster below (BUILD_NOTES.md, "Winograd").
+
+`conv3` takes it as the performance option `winograd` says (`models.performance`):
+"auto" (default) on the CPU backend only, chosen per platform when the function is
+lowered (elsewhere XLA's convolution, `direct_conv`); "on" wherever the channels allow,
+"off" never. Set by `CVMDX_WINOGRAD=auto|on|off` or `performance.use`.
 """
 
 import jax
 import jax.numpy as jnp
+
+from cvmdx_jax.models import performance
 
 TILE = 4  # outputs per tile
 MIN_CHANNELS = 128  # `conv3` uses F(4, 3) where both channel counts reach this
@@ -51,11 +58,17 @@ def winograd_conv(x, kernel):
   return y.reshape(b, length, -1)
 
 
-def conv3(x, kernel):
-  """The width-3 "SAME" convolution x (B, L, C) * kernel (3, C, O) -> (B, L, O):
-  `winograd_conv` where C, O >= MIN_CHANNELS and L % 4 == 0, else XLA's convolution."""
-  _, length, channels = x.shape
-  if min(channels, kernel.shape[-1]) >= MIN_CHANNELS and length % TILE == 0:
-    return winograd_conv(x, kernel)
+def direct_conv(x, kernel):
+  """XLA's convolution, the same function as `winograd_conv` for any length."""
   return jax.lax.conv_general_dilated(x, kernel, (1,), ((1, 1),),
                                       dimension_numbers=("NWC", "WIO", "NWC"))
+
+
+def conv3(x, kernel):
+  """The width-3 "SAME" convolution x (B, L, C) * kernel (3, C, O) -> (B, L, O):
+  `winograd_conv` where C, O >= MIN_CHANNELS, L % 4 == 0 and the `winograd` performance
+  option takes it (module docstring), else XLA's convolution."""
+  _, length, channels = x.shape
+  if min(channels, kernel.shape[-1]) >= MIN_CHANNELS and length % TILE == 0:
+    return performance.select("winograd", winograd_conv, direct_conv, x, kernel)
+  return direct_conv(x, kernel)

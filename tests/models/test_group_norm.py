@@ -1,4 +1,5 @@
-"""The hand-written GroupNorm (forward and backward) against a plain reference, and the
+"""The hand-written GroupNorm (forward and backward) and the plain path of the
+`group_norm_backward` option against a two-pass reference, and the
 phase-split upsampling against the repeat-then-convolve it replaces."""
 
 import jax
@@ -8,7 +9,8 @@ import pytest
 from flax import nnx
 
 from cvmdx_jax.models import layers
-from cvmdx_jax.models.group_norm import GroupNorm, group_norm, group_norm_silu
+from cvmdx_jax.models.group_norm import (GroupNorm, group_norm, group_norm_silu,
+                                        plain_group_norm, plain_group_norm_silu)
 
 
 def _reference(x, scale, bias, groups, eps):
@@ -20,17 +22,18 @@ def _reference(x, scale, bias, groups, eps):
   return ((xg - mean) / jnp.sqrt(var + eps)).reshape(b, length, c) * scale + bias
 
 
+@pytest.mark.parametrize("norm", [group_norm, plain_group_norm])  # fast and plain paths
 @pytest.mark.parametrize("shape,groups", [((3, 16, 64), 8), ((2, 5, 12), 4), ((1, 7, 6), 6)])
-def test_forward_and_gradients_match_the_reference(shape, groups):
+def test_forward_and_gradients_match_the_reference(shape, groups, norm):
   keys = jax.random.split(jax.random.key(0), 4)
   x = 2.0 * jax.random.normal(keys[0], shape) + 1.5
   scale = jax.random.normal(keys[1], shape[-1:])
   bias = jax.random.normal(keys[2], shape[-1:])
   weight = jax.random.normal(keys[3], shape)
-  np.testing.assert_allclose(group_norm(x, scale, bias, groups, 1e-5),
+  np.testing.assert_allclose(norm(x, scale, bias, groups, 1e-5),
                              _reference(x, scale, bias, groups, 1e-5), atol=2e-5)
   # a non-linear read-out, so that every term of the backward pass matters
-  ours = lambda *a: jnp.sum(weight * jnp.sin(group_norm(*a, groups, 1e-5)))
+  ours = lambda *a: jnp.sum(weight * jnp.sin(norm(*a, groups, 1e-5)))
   ref = lambda *a: jnp.sum(weight * jnp.sin(_reference(*a, groups, 1e-5)))
   for g_ours, g_ref in zip(jax.grad(ours, (0, 1, 2))(x, scale, bias),
                            jax.grad(ref, (0, 1, 2))(x, scale, bias)):
@@ -68,7 +71,8 @@ def test_upsample_equals_repeat_then_convolve():
     np.testing.assert_allclose(a, b, atol=1e-4)
 
 
-def test_fused_silu_with_modulation_matches_the_reference():
+@pytest.mark.parametrize("norm_silu", [group_norm_silu, plain_group_norm_silu])
+def test_fused_silu_with_modulation_matches_the_reference(norm_silu):
   keys = jax.random.split(jax.random.key(7), 6)
   x = 1.5 * jax.random.normal(keys[0], (3, 10, 16)) - 0.5
   scale, bias = jax.random.normal(keys[1], (16,)), jax.random.normal(keys[2], (16,))
@@ -76,7 +80,7 @@ def test_fused_silu_with_modulation_matches_the_reference():
   weight = jax.random.normal(keys[5], x.shape)
   ref_out = lambda x, s, b, m, c: jax.nn.silu(
       _reference(x, s, b, 4, 1e-5) * m[:, None] + c[:, None])
-  ours_out = lambda x, s, b, m, c: group_norm_silu(x, s, b, m, c, 4, 1e-5)
+  ours_out = lambda x, s, b, m, c: norm_silu(x, s, b, m, c, 4, 1e-5)
   args = (x, scale, bias, m, c)
   np.testing.assert_allclose(ours_out(*args), ref_out(*args), atol=2e-5)
   ours = lambda *a: jnp.sum(weight * jnp.sin(ours_out(*a)))

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax.models import winograd
+from cvmdx_jax.models import performance, winograd
 
 
 def _direct(x, kernel):
@@ -39,7 +39,8 @@ def test_matches_direct_convolution_and_its_gradients(shape):
 def test_conv3_chooses_by_channels_and_length():
   def uses_winograd(shape, out_channels):
     x = jnp.zeros(shape)
-    jaxpr = jax.make_jaxpr(winograd.conv3)(x, jnp.zeros((3, shape[-1], out_channels)))
+    with performance.use(performance.PerformanceOptions(winograd="on")):
+      jaxpr = jax.make_jaxpr(winograd.conv3)(x, jnp.zeros((3, shape[-1], out_channels)))
     return "conv_general_dilated" not in str(jaxpr)
   big = winograd.MIN_CHANNELS
   assert uses_winograd((2, 16, big), big)
