@@ -18,6 +18,11 @@ import ml_collections
 
 from configs import common
 
+# The default pipeline's students (`make demo`, experiments/run_demo.py --distill_steps): a
+# guidance student sampled in 4 steps, then a progressive student for 2 (chosen on val;
+# BUILD_NOTES.md, "Distilled sampler"); experiments/benchmark.py times the last one.
+STUDENTS = (4, 2)
+
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   """Returns the distillation config for `arg` (see the module docstring)."""

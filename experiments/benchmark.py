@@ -47,14 +47,16 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_config
+from configs import distill as distill_config
 from cvmdx_jax import cli, diffusion, ego_motion, host_allocator
 from cvmdx_jax.inference import sampling as sampling_lib
-from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig
 from cvmdx_jax.targets import DenoiserConfig
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.models import performance, unet1d
 from cvmdx_jax.models.performance import PerformanceOptions
 from cvmdx_jax.train import diffusion as diffusion_train
+from cvmdx_jax.train import distill
 
 _DEMO_BATCH = flags.DEFINE_integer("demo_batch", 256, "Scenarios per call, CPU default model.")
 _REF_BATCH = flags.DEFINE_integer("reference_batch", 16,
@@ -163,11 +165,21 @@ def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int 
 
 
 def default_sampling(base: sampling_lib.SamplingConfig) -> sampling_lib.SamplingConfig:
-  """`base` with the default sampler and steps (--sampler, --steps, else
-  configs/diffusion.py without a preset)."""
-  default = diffusion_config.get_config().sampling
-  return dataclasses.replace(base, sampler=_SAMPLER.value or default.sampler,
-                             steps=_STEPS.value or default.steps)
+  """`base` with the default sampler and steps: --sampler and --steps, else the default
+  pipeline's, the last student of `configs.distill.STUDENTS` (sampler "distilled")."""
+  sampler = _SAMPLER.value or "distilled"
+  default = (distill_config.STUDENTS[-1] if sampler == "distilled"
+             else diffusion_config.get_config().sampling.steps)
+  return dataclasses.replace(base, sampler=sampler, steps=_STEPS.value or default)
+
+
+def sampled_config(config: DiffusionConfig,
+                   sampling: sampling_lib.SamplingConfig) -> DiffusionConfig:
+  """The run `sampling` samples: for the distilled sampler the student of `config` (w as an
+  input, `train.distill.student_config`), else `config`."""
+  if sampling.sampler != "distilled":
+    return config
+  return distill.student_config(config, DistillConfig(steps=sampling.steps))
 
 
 def reference_timings(config: DiffusionConfig, num_tokens: int,
@@ -182,9 +194,10 @@ def reference_timings(config: DiffusionConfig, num_tokens: int,
     the first one (trace, compile and run).
   """
   config = config.with_tokens(num_tokens)
-  graphdef, params = unet1d.init_unet(config.model, jax.random.key(0))
+  sampled = sampled_config(config, sampling)
+  graphdef, params = unet1d.init_unet(sampled.model, jax.random.key(0))
   timed = lambda b, key: predict_calls(graphdef, params, b, sampling, repeats[key][1],
-                                       num_tokens, repeats[key][0], config.diffusion)
+                                       num_tokens, repeats[key][0], sampled.diffusion)
   train_warmup, train_repeats = repeats["train"]
   first, b1 = timed(1, "b1")
   return {"params": unet1d.count_params(params), "sampler": sampling.sampler,
@@ -316,17 +329,20 @@ def default_main():
     print(f"\n== {name}: {unet1d.count_params(params) / 1e6:.2f} M parameters, "
           f"{gflop:.3f} GFLOP per sample forward, {per_scenario:.1f} GFLOP per scenario "
           f"(9 samples x 10 steps x 2 for CFG)")
-    for sampling, label, gflop in ((ddim, "", per_scenario),
-                                   (fast, f" {fast.sampler}({fast.steps})", None)):
-      first, sec = predict_calls(graphdef, params, 1, sampling, _REPEATS.value,
-                                 denoiser_config=targets)
+    student = sampled_config(config, fast)
+    fast_net = (graphdef, params) if student is config else unet1d.init_unet(
+        student.model, jax.random.key(0))
+    for sampling, label, gflop, (g, p), d in (
+        (ddim, "", per_scenario, (graphdef, params), targets),
+        (fast, f" {fast.sampler}({fast.steps})", None, fast_net, student.diffusion)):
+      first, sec = predict_calls(g, p, 1, sampling, _REPEATS.value, denoiser_config=d)
       print(predict_line(label, 1, sec, gflop, first))
-      sec = predict_timing(graphdef, params, big, sampling, _REPEATS.value,
-                           denoiser_config=targets)
+      sec = predict_timing(g, p, big, sampling, _REPEATS.value, denoiser_config=d)
       print(predict_line(label, big, sec, gflop))
     ddpm = dataclasses.replace(ddim, sampler="ddpm")
-    t_ddim, t_fast, t_ddpm = (predict_timing(graphdef, params, 1, s, 1, denoiser_config=targets)
-                              for s in (ddim, fast, ddpm))
+    t_ddim, t_ddpm = (predict_timing(graphdef, params, 1, s, 1, denoiser_config=targets)
+                      for s in (ddim, ddpm))
+    t_fast = predict_timing(*fast_net, 1, fast, 1, denoiser_config=student.diffusion)
     print(f"DDPM(1000) {t_ddpm:.2f} s vs DDIM(10) {t_ddim:.3f} s per scenario (9 samples): "
           f"{t_ddpm / t_ddim:.1f}x")
     print(f"DDPM(1000) {t_ddpm:.2f} s vs default {fast.sampler}({fast.steps}) {t_fast:.3f} s "

@@ -1,17 +1,19 @@
-"""The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion (+ learned baseline) -> report.
+"""The main job: SUMO data -> CVQ-VAE tokeniser -> diffusion -> distilled student (+ learned
+baseline) -> report.
 
   make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
-Writes runs/demo/{data, tokenizer, diffusion, baseline}/ and two reports in the same
-schema, each with the rows of the multiple-choice MLP baseline trained on the same train
+Writes runs/demo/{data, tokenizer, diffusion, student_*, baseline}/ and two reports in the
+same schema of the last student of `--distill_steps` (the guided denoiser itself where that
+is empty), each with the rows of the multiple-choice MLP baseline trained on the same train
 split and tokens (`configs/baseline.py`, at most 90 s of the demo): the
 test split's (metrics.json, results.md, predictions_<class>.png, kl_vs_usage.png) and
 the held-out road's (metrics_test_ood.json, results_test_ood.md, *_test_ood.png; the
 single-DDPM baseline there on at most `OOD_DDPM_SCENARIOS`). A dataset without a
 test_ood split (highD, cvmd_mat) gets the test report only, with a printed note. Every
 stage resumes: a rerun reuses the dataset cache and the finished checkpoints. CPU-sized
-presets: dataset `:small`, tokeniser `:demo`, diffusion `:demo`, baseline `:demo` (change
-them with the flags below).
+presets: dataset `:small`, tokeniser `:demo`, diffusion `:demo`, distillation `:demo`,
+baseline `:demo` (change them with the flags below).
 """
 
 import time
@@ -22,19 +24,27 @@ from absl import app, flags
 from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
+from configs import distill as distill_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.runs.config import (BaselineConfig, DiffusionConfig, DistillConfig,
+                                   TokenizerRunConfig)
 from cvmdx_jax.train import baseline as baseline_train
 from cvmdx_jax.train import diffusion as diffusion_train
+from cvmdx_jax.train import distill as distill_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
 _WORKDIR = flags.DEFINE_string("workdir", "runs/demo", "Where everything is written.")
 _DATA = flags.DEFINE_string("data_preset", "small", "configs/dataset.py preset.")
 _TOKENIZER = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.py preset.")
 _DIFFUSION = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
+_DISTILL = flags.DEFINE_string("distill_preset", "demo", "configs/distill.py preset.")
+_DISTILL_STEPS = flags.DEFINE_list(
+    "distill_steps", [str(s) for s in distill_config.STUDENTS], "Students, one run each: a guidance student sampled in the "
+    "first count of steps, then progressive students, each for half its teacher's steps; "
+    "empty: the report samples the guided denoiser.")
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 30, "Scenarios of the single-DDPM baseline "
                              "(1,000 guided steps: ~1.4 s each on 2 cores).",
@@ -43,7 +53,12 @@ cli.output_dirs("workdir")
 cli.presets("data_preset", dataset_config.get_config)
 cli.presets("tokenizer_preset", tokenizer_config.get_config)
 cli.presets("diffusion_preset", diffusion_config.get_config)
+cli.presets("distill_preset", distill_config.get_config)
 cli.presets("baseline_preset", baseline_config.get_config)
+cli.int_list("distill_steps", 1)
+flags.register_validator(
+    "distill_steps", lambda v: all(int(b) * 2 == int(a) for a, b in zip(v, v[1:])),
+    "each progressive student takes half its teacher's steps (e.g. 4,2,1)")
 OOD_DDPM_SCENARIOS = 30  # cap of the single-DDPM baseline on test_ood (demo time budget)
 
 
@@ -73,6 +88,17 @@ def main(argv):
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
   diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
 
+  teacher = diff_dir
+  for i, steps in enumerate(_DISTILL_STEPS.value):
+    kind = "progressive" if i else "guidance"
+    student = root / f"student_{kind}_{steps}"
+    _stage(f"3b/5 {kind} distillation, {steps} steps (preset {_DISTILL.value}) -> {student}",
+           start)
+    dist_cfg = distill_config.get_config(_DISTILL.value)
+    dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
+    distill_train.train(DistillConfig.from_config(dist_cfg), student)
+    teacher = student
+
   _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
   base_cfg = baseline_config.get_config(_BASELINE.value)
   base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
@@ -80,7 +106,7 @@ def main(argv):
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
-  for split in report.run_test_and_ood(tokenizer_dir=tok_dir, diffusion_dir=diff_dir,
+  for split in report.run_test_and_ood(tokenizer_dir=tok_dir, diffusion_dir=teacher,
                                        data_dir=data_dir, workdir=root,
                                        ddpm_scenarios=_DDPM.value,
                                        ood_ddpm_scenarios=min(_DDPM.value, OOD_DDPM_SCENARIOS),

@@ -92,3 +92,14 @@ def test_performance_table_marks_what_auto_takes_per_platform():
   assert cpu[3].startswith("| off | off |  |")
   gpu = benchmark.performance_table(rows, "gpu").splitlines()
   assert gpu[2].startswith("| on | on |  |") and gpu[3].startswith("| off | off | x |")
+
+
+def test_the_distilled_sampler_is_timed_on_a_student():
+  config = DiffusionConfig.from_config(diffusion_config.get_config("demo")).with_tokens(5)
+  pair = sampling_lib.SamplingConfig(sampler="dpmpp2m", steps=3)
+  assert benchmark.sampled_config(config, pair) is config
+  student = benchmark.sampled_config(config, sampling_lib.SamplingConfig(sampler="distilled",
+                                                                         steps=2))
+  assert student.diffusion.guidance_input and not config.diffusion.guidance_input
+  assert student.model.cond_dim == config.model.cond_dim + 1
+  assert (student.sampling.sampler, student.sampling.steps) == ("distilled", 2)
