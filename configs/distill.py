@@ -52,8 +52,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train.learning_rate = 1e-3
     config.train.checkpoint_every = 1
   if arg.demo:
+    # each stage ~350 steps over the :small train split: both stages of `make demo` within
+    # ~4 min on 2 cores (BUILD_NOTES.md, "Distilled sampler")
     config.train.batch_size = 128
-    config.train.num_epochs = 8
+    config.train.num_epochs = 6
     config.train.learning_rate = 3e-4
     config.train.checkpoint_every = 2
   return config

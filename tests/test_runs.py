@@ -61,7 +61,7 @@ def test_run_configs_become_the_typed_configs():
   assert demo.diffusion.class_weights == (3.0, 1.0, 1.0)  # chosen on val
   assert demo.diffusion.weighted_classes
   # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
-  assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (36, "kmeans")
+  assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
   assert demo.sampling.hypotheses.endpoint_weight == 0.5
   for preset in ("paper", "reference"):
     sampling = DiffusionConfig.from_config(diffusion_config.get_config(preset)).sampling
