@@ -482,3 +482,15 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   monkeypatch.setattr(runs_lib, "load_denoiser", other)
   with pytest.raises(checkpointing.CheckpointMismatchError, match="teacher.params_id"):
     _distill(runs / "diffusion", tmp_path / "guidance", 4)
+
+
+@pytest.mark.slow
+def test_a_stopped_distillation_resumes_bit_identically(runs, tmp_path):
+  config = distill_config.get_config("tiny")
+  config.teacher_dir, config.train.num_epochs = str(runs / "diffusion"), 2
+  whole = distill.train(DistillConfig.from_config(config), tmp_path / "whole")
+  config.train.num_epochs = 1
+  distill.train(DistillConfig.from_config(config), tmp_path / "stopped")
+  config.train.num_epochs = 2
+  resumed = distill.train(DistillConfig.from_config(config), tmp_path / "stopped")
+  jax.tree.map(np.testing.assert_array_equal, whole["ema_params"], resumed["ema_params"])
