@@ -16,6 +16,9 @@ from cvmdx_jax.evaluation import report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
+_DDPM_DIR = flags.DEFINE_string("ddpm_diffusion_dir", None, "The run that draws the single-DDPM "
+                                "baseline (default: --diffusion_dir; for a distilled student, "
+                                "the guided denoiser it was distilled from).")
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory of the report.")
 _BASELINE = flags.DEFINE_string("baseline_dir", None, "Trained multiple-choice baseline run "
@@ -34,7 +37,8 @@ _SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
 _STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.",
                               lower_bound=1)
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
-cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir", "baseline_dir")
+cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir", "baseline_dir",
+               "ddpm_diffusion_dir")
 cli.output_dirs("workdir")
 
 
@@ -46,7 +50,8 @@ def main(argv):
   report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
              data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
              seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value,
-             sampling_overrides=overrides, baseline_dir=_BASELINE.value)
+             sampling_overrides=overrides, baseline_dir=_BASELINE.value,
+             ddpm_diffusion_dir=_DDPM_DIR.value)
   print(open(f"{_WORKDIR.value}/results.md").read())
 
 

@@ -110,7 +110,7 @@ def main(argv):
                                        data_dir=data_dir, workdir=root,
                                        ddpm_scenarios=_DDPM.value,
                                        ood_ddpm_scenarios=min(_DDPM.value, OOD_DDPM_SCENARIOS),
-                                       baseline_dir=base_dir):
+                                       baseline_dir=base_dir, ddpm_diffusion_dir=diff_dir):
     suffix = report.split_suffix(split)
     files += [f"{root}/metrics{suffix}.json", f"{root}/results{suffix}.md"]
     print(f"\n{split}:\n" + (root / f"results{suffix}.md").read_text())

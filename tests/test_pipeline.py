@@ -464,6 +464,15 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
     np.testing.assert_array_equal(a.prediction.trajectories, b.prediction.trajectories)
     assert a.prediction.trajectories.shape == (4, 9, 125, 2)
     assert np.isfinite(a.prediction.trajectories).all()
+  # a progressive student knows only its own steps: the DDPM row needs the guided denoiser
+  common = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=tmp_path / "progressive",
+                data_dir=runs / "data", max_scenarios=6, ddpm_scenarios=3,
+                figures_per_class=1)
+  alone = report.run(workdir=tmp_path / "alone", **common)
+  paired = report.run(workdir=tmp_path / "paired", ddpm_diffusion_dir=runs / "diffusion",
+                      **common)
+  assert "ddpm_single" not in alone and paired["ddpm_single"]["all"]["num_scenarios"] == 3
+  assert paired["_meta"]["sampling"]["sampler"] == "distilled"
   # a progressive student for 2 steps teaches one for 1 step, not another for 2
   with pytest.raises(distill.TeacherMismatchError, match="not steps=2"):
     _distill(tmp_path / "progressive", tmp_path / "again", 2)

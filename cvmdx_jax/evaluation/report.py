@@ -44,11 +44,17 @@ def _sampling_meta(predictor: Predictor) -> dict:
   return out
 
 
+def _progressive(predictor: Predictor) -> bool:
+  """Whether the predictor's denoiser is a progressive student (`train.distill`)."""
+  taught = predictor.denoiser.fingerprint.to_dict().get("distill", {})
+  return taught.get("stage") == "progressive"
+
+
 @locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
         figures_per_class: int = 3, sampling_overrides=None, suffix: str = "",
-        baseline_dir=None) -> dict:
+        baseline_dir=None, ddpm_diffusion_dir=None) -> dict:
   """Evaluates a trained cVMDx on `split` of the dataset in `data_dir`.
 
   Args:
@@ -60,6 +66,9 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     max_scenarios: evaluate a class-balanced subset of this size (0 = all).
     ddpm_scenarios: scenarios of the (100x slower) single-DDPM-sample baseline, a
       class-balanced subset of the evaluated ones (0 = skip it).
+    ddpm_diffusion_dir: the run whose denoiser draws that baseline (None: `diffusion_dir`).
+      A progressive student knows only its own steps: with one and no other run the row is
+      left out (a printed note); give the guided denoiser it was distilled from.
     figures_per_class: scenarios drawn per class in the prediction figures.
     sampling_overrides: `SamplingConfig` fields set instead of the diffusion run's
       (e.g. {"sampler": "ddim", "steps": 10}).
@@ -101,12 +110,17 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   ece, diagram = scoring.calibration(hyp.means, hyp.probs, gt, scenarios.label)
   for subset, row in ece.items():
     results["cvmdx_best_of_k"][subset].update(row)
-  if ddpm_scenarios:
+  ddpm_predictor = (predictor if ddpm_diffusion_dir is None
+                    else Predictor.load(tokenizer_dir, ddpm_diffusion_dir))
+  if ddpm_scenarios and _progressive(ddpm_predictor):
+    print(f"note: {ddpm_diffusion_dir or diffusion_dir} is a progressive student (it knows only its own steps): no "
+          "single-DDPM row; pass the guided denoiser as the DDPM run", flush=True)
+  elif ddpm_scenarios:
     idx = balanced_indices(scenarios.label, seed, ddpm_scenarios)
     sub = scenarios.take(idx)
-    single = dataclasses.replace(predictor.sampling, sampler="ddpm", num_samples=1,
+    single = dataclasses.replace(ddpm_predictor.sampling, sampler="ddpm", num_samples=1,
                                  hypotheses=HypothesisConfig(c_max=1, pca_dim=1))
-    ddpm = dataclasses.replace(predictor, sampling=single)(sub, seed=seed)
+    ddpm = dataclasses.replace(ddpm_predictor, sampling=single)(sub, seed=seed)
     scoring.check_finite(ddpm.prediction, sub, f"single DDPM sample on split {split}")
     results.update(scoring.summarise(
         {"ddpm_single": scoring.single_trajectory_errors(ddpm.mean, jnp.asarray(sub.future))},
@@ -132,6 +146,8 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
   meta = {"split": split, "num_scenarios": len(scenarios), "seed": seed,
           "sampling": _sampling_meta(predictor),
           "tokenizer_dir": str(tokenizer_dir), "diffusion_dir": str(diffusion_dir),
+          **({} if ddpm_diffusion_dir is None
+             else {"ddpm_diffusion_dir": str(ddpm_diffusion_dir)}),
           "data_dir": str(data_dir), "dataset_id": dataset_lib.dataset_id(data_dir),
           "baseline": None if baseline is None else {"dir": str(baseline_dir),
                                                      "epoch": baseline.epoch},
@@ -158,7 +174,7 @@ def split_suffix(split: str) -> str:
 
 def run_test_and_ood(*, tokenizer_dir, diffusion_dir, data_dir, workdir, ddpm_scenarios: int,
                      ood_ddpm_scenarios: int, seed: int = 0, max_scenarios: int = 0,
-                     baseline_dir=None) -> dict:
+                     baseline_dir=None, ddpm_diffusion_dir=None) -> dict:
   """Reports on test (metrics.json, results.md, ...) and, where the dataset has the split,
   on test_ood (metrics_test_ood.json, results_test_ood.md, ...) into one `workdir`, in
   the same schema; without test_ood a note is printed. Arguments as in `run`, with
@@ -172,5 +188,6 @@ def run_test_and_ood(*, tokenizer_dir, diffusion_dir, data_dir, workdir, ddpm_sc
   return {split: run(tokenizer_dir=tokenizer_dir, diffusion_dir=diffusion_dir,
                      data_dir=data_dir, workdir=workdir, split=split, seed=seed,
                      max_scenarios=max_scenarios, ddpm_scenarios=ddpm,
-                     suffix=split_suffix(split), baseline_dir=baseline_dir)
+                     suffix=split_suffix(split), baseline_dir=baseline_dir,
+                     ddpm_diffusion_dir=ddpm_diffusion_dir)
           for split, ddpm in splits.items()}
