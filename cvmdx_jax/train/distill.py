@@ -36,9 +36,6 @@ from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import loop
 
-STAGES = ("guidance", "progressive")
-
-
 class TeacherMismatchError(ValueError):
   """The teacher cannot teach this run (wrong kind, steps or data)."""
 
