@@ -472,7 +472,9 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   paired = report.run(workdir=tmp_path / "paired", ddpm_diffusion_dir=runs / "diffusion",
                       **common)
   assert "ddpm_single" not in alone and paired["ddpm_single"]["all"]["num_scenarios"] == 3
-  assert paired["_meta"]["sampling"]["sampler"] == "distilled"
+  meta = json.loads((tmp_path / "paired" / "metrics.json").read_text())["_meta"]
+  assert meta["sampling"]["sampler"] == "distilled"
+  assert meta["ddpm_diffusion_dir"] == str(runs / "diffusion")
   # a progressive student for 2 steps teaches one for 1 step, not another for 2
   with pytest.raises(distill.TeacherMismatchError, match="not steps=2"):
     _distill(tmp_path / "progressive", tmp_path / "again", 2)
