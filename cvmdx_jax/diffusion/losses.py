@@ -32,7 +32,17 @@ def v_loss(model_fn, x0, cond, key, schedule: Schedule, *, null_cond: int,
   x_t = param.q_sample(x0, eps, abar)
   drop = jax.random.bernoulli(k_drop, cond_drop_prob, (b,))
   cond = jnp.where(drop, null_cond, cond)
-  err = (model_fn(x_t, t, cond) - param.v_from_x0_eps(x0, eps, abar)) ** 2
-  per_example = jnp.mean(err.reshape(b, -1), axis=-1)
+  return weighted_mse(model_fn(x_t, t, cond), param.v_from_x0_eps(x0, eps, abar), weight)
+
+
+def weighted_mse(pred, target, weight=None):
+  """The weighted mean over examples of the per-element mean squared error.
+
+  Args:
+    pred, target: (B, ...).
+    weight: (B,) per-example weights (0 for padding rows); None = all ones.
+  """
+  b = pred.shape[0]
+  per_example = jnp.mean(((pred - target) ** 2).reshape(b, -1), axis=-1)
   weight = jnp.ones((b,), per_example.dtype) if weight is None else weight
   return jnp.sum(weight * per_example) / jnp.maximum(jnp.sum(weight), 1.0)

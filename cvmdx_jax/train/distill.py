@@ -25,9 +25,11 @@ import os
 import jax
 import jax.numpy as jnp
 import optax
+from flax import traverse_util
 
 from cvmdx_jax import ego_motion
 from cvmdx_jax.diffusion import cosine_schedule, guidance_weight, guided_v_fn, param
+from cvmdx_jax.diffusion.losses import weighted_mse
 from cvmdx_jax.diffusion import distillation
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints, layout, loaders
@@ -58,48 +60,29 @@ def student_config(teacher: DiffusionConfig, config: DistillConfig) -> Diffusion
       diffusion=diffusion, train=config.train, sampling=sampling)
 
 
-def _paths(tree, prefix=()):
-  if isinstance(tree, dict):
-    for k, v in tree.items():
-      yield from _paths(v, prefix + (k,))
-  else:
-    yield prefix, tree
-
-
-def _get(tree, path):
-  for k in path:
-    if not isinstance(tree, dict) or k not in tree:
-      return None
-    tree = tree[k]
-  return tree
-
-
 def student_params(teacher_params: dict, fresh: dict) -> dict:
   """The student's initial parameters: `fresh` (the student's own init) with every
   teacher leaf of the same path and shape; the teacher's first FiLM layer gets a zero
   row for w; a FiLM MLP the teacher lacks keeps its fresh first layer and a zero output
   layer (so the student's output equals the teacher's conditional v)."""
+  teacher = traverse_util.flatten_dict(teacher_params)
   out = {}
-  for path, leaf in _paths(fresh):
-    old = _get(teacher_params, path)
+  for path, leaf in traverse_util.flatten_dict(fresh).items():
+    old = teacher.get(path)
     if old is not None and old.shape == leaf.shape:
-      new = old
+      out[path] = old
     elif old is not None and path[-1] == "kernel" and old.shape[1:] == leaf.shape[1:]:
-      new = jnp.concatenate([old, jnp.zeros((leaf.shape[0] - old.shape[0],) + leaf.shape[1:],
-                                            leaf.dtype)])
+      out[path] = jnp.concatenate([old, jnp.zeros(
+          (leaf.shape[0] - old.shape[0],) + leaf.shape[1:], leaf.dtype)])
     elif old is None and path[0] == "cond_mlp2":
-      new = jnp.zeros_like(leaf)
+      out[path] = jnp.zeros_like(leaf)
     elif old is None and path[0] == "cond_mlp1":
-      new = leaf
+      out[path] = leaf
     else:
       raise TeacherMismatchError(f"student parameter {'/'.join(map(str, path))} "
                                  f"{leaf.shape} has no teacher counterpart "
                                  f"({None if old is None else old.shape})")
-    node = out
-    for k in path[:-1]:
-      node = node.setdefault(k, {})
-    node[path[-1]] = new
-  return out
+  return traverse_util.unflatten_dict(out)
 
 
 def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
@@ -153,9 +136,8 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, sta
     weight = batch["weight"] * batch.get("class_weight", 1.0)
 
     def loss_fn(params):
-      err = (unet1d.apply_unet(graphdef, params, x_t, t, q, cond=cond) - target) ** 2
-      per_example = jnp.mean(err.reshape(err.shape[0], -1), axis=-1)
-      return jnp.sum(weight * per_example) / jnp.maximum(jnp.sum(weight), 1.0)
+      return weighted_mse(unet1d.apply_unet(graphdef, params, x_t, t, q, cond=cond), target,
+                          weight)
 
     loss, grads = jax.value_and_grad(loss_fn)(state["params"])
     return (diffusion_train.apply_gradients(state, grads, tx, student.train.ema_decay),
