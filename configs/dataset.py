@@ -6,24 +6,27 @@ other sources with `--config.source=highd --config.highd_dir=/path/to/highD/data
 `--config.source=cvmd_mat --config.mat_dir=/path/with/train_and_test`).
 
 Splits, all by recording (a recording's scenarios are in one split only):
-- sumo: train / val / test on roads and traffic drawn from the ranges below, and test_ood on
+- sumo: train / val / test on roads and traffic drawn from the ranges below, test_ood on
   a held-out road (`sumo.held_out`: 4 lanes per direction of 3.5 m, 110 km/h, a denser flow
-  per lane) that no other recording has. Recordings are numbered in that order
-  (`sumo.recordings`); each one's road, traffic and drivers are in
-  `<data_dir>/recordings/plans.json` (`cvmdx_jax.data.sumo_plan`).
+  per lane) that no other recording has, and val_ood on a second held-out road
+  (`sumo.val_held_out`: 3 lanes of 3.5 m, 90 km/h) to choose settings for roads never seen
+  without reading test_ood. Recordings are numbered in that order (`sumo.recordings`); each
+  one's road, traffic and drivers are in `<data_dir>/recordings/plans.json`
+  (`cvmdx_jax.data.sumo_plan`).
 - highd: `splits` (recording ids): test = ids ending in 3, 6 or 9 (18 of 60), val = ids
-  ending in 0 (6 of 60), train = the other 36.
+  ending in 0 (6 of 60), train = the other 36; test_ood and val_ood empty (not built)
+  unless given.
 - cvmd_mat: `mat_dir/train` and `mat_dir/test`; val = `mat_val_fraction` of each class's
   train files, drawn with `seed`.
 
-Default SUMO data: 10 train, 2 val and 3 test recordings of 240 s and 2 test_ood recordings
-of 100 s (>= 9,000 train scenarios; sizes and build times in BUILD_NOTES.md). Ranges, one
+Default SUMO data: 10 train, 2 val and 3 test recordings of 240 s, 2 test_ood recordings
+of 100 s and 1 val_ood recording of 120 s (>= 9,000 train scenarios; sizes and build times in BUILD_NOTES.md). Ranges, one
 draw per recording, chosen to cover highD-like behaviour (car speeds mostly 80-130 km/h,
 trucks 80-90 km/h, 10-30 % trucks, lane changes over ~4-6 s): 3 or 2 lanes of 3.75 m, speed
 limit 100, 120 or 130 km/h, 500-1000 veh/h per lane, Krauss or IDM car following; driver
 ranges in `sumo.car` / `sumo.truck` (SUMO vType parameters, SI units).
-`:small` (the demo): 12 / 2 / 2 recordings of 120 s and 1 test_ood of 40 s (two val
-recordings, so that val holds both lane counts).
+`:small` (the demo): 12 / 2 / 2 recordings of 120 s, 1 test_ood of 40 s and 1 val_ood of
+60 s (two val recordings, so that val holds both lane counts).
 """
 
 import ml_collections
@@ -45,12 +48,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.highd_dir = ""  # directory with XX_tracks.csv etc. (source=highd)
   c.mat_dir = ""  # directory with train/ and test/ class folders (source=cvmd_mat)
   c.mat_val_fraction = 0.15  # share of each class's train files moved to val (cvmd_mat)
-  # Recording ids per split (source=highd); an empty test_ood is not built.
+  # Recording ids per split (source=highd); an empty test_ood or val_ood is not built.
   c.splits = ml_collections.ConfigDict()
   c.splits.train = HIGHD_TRAIN
   c.splits.val = HIGHD_VAL
   c.splits.test = HIGHD_TEST
   c.splits.test_ood = ()
+  c.splits.val_ood = ()
 
   c.extraction = ml_collections.ConfigDict()
   c.extraction.lc_offsets_s = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5)  # s before crossing
@@ -63,7 +67,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   s = c.sumo = ml_collections.ConfigDict()
   s.seed = 0  # SUMO seed = seed * 1000 + recording id; plan draws seeded by (seed, id)
   s.recordings = ml_collections.ConfigDict(  # recordings per split, numbered 1.. in this order
-      {"train": 10, "val": 2, "test": 3, "test_ood": 2})
+      {"train": 10, "val": 2, "test": 3, "test_ood": 2, "val_ood": 1})
   s.workers = 2  # SUMO processes at once
   s.warmup_s = 60.0  # simulated before frame 1
   s.duration_s = 240.0  # recorded time per recording
@@ -103,18 +107,24 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   s.held_out = ml_collections.ConfigDict({
       "lanes": 4, "lane_width_m": 3.5, "speed_limit_kmh": 110.0,
       "flow_per_lane": (700.0, 900.0), "duration_s": 100.0})
+  # The held-out road of the val_ood recordings: lane width and speed limit of no other
+  # recording, 3 lanes so that both lane-change directions are there.
+  s.val_held_out = ml_collections.ConfigDict({
+      "lanes": 3, "lane_width_m": 3.5, "speed_limit_kmh": 90.0,
+      "flow_per_lane": (800.0, 1000.0), "duration_s": 120.0})
 
   if arg.small:
     # 12 train recordings (6 until 2026-11-23): with the demo's steps unchanged (30 epochs
     # instead of 60), val mean-of-9 ADE 0.87 against 0.90 over three seeds (BUILD_NOTES.md,
     # "Twice the roads")
     s.recordings = ml_collections.ConfigDict(
-        {"train": 12, "val": 2, "test": 2, "test_ood": 1})
+        {"train": 12, "val": 2, "test": 2, "test_ood": 1, "val_ood": 1})
     s.duration_s = 120.0
     s.held_out.duration_s = 40.0
+    s.val_held_out.duration_s = 60.0
   if arg.tiny:
     s.recordings = ml_collections.ConfigDict(
-        {"train": 2, "val": 1, "test": 1, "test_ood": 1})
+        {"train": 2, "val": 1, "test": 1, "test_ood": 1, "val_ood": 0})
     s.duration_s = 60.0
     s.held_out.duration_s = 60.0
     s.road_length_m = 900.0

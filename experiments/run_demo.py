@@ -46,6 +46,9 @@ _DISTILL_STEPS = flags.DEFINE_list(
     "first count of steps, then progressive students, each for half its teacher's steps; "
     "empty: the report samples the guided denoiser.")
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
+_SEED = flags.DEFINE_integer("seed", 0, "Training seed of the tokeniser, denoiser, students "
+                             "and baseline (`config.seed` of each; the data stay the same).",
+                             lower_bound=0)
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 30, "Scenarios of the single-DDPM baseline "
                              "(1,000 guided steps: ~1.4 s each on 2 cores).",
                              lower_bound=0)
@@ -80,12 +83,13 @@ def main(argv):
 
   _stage(f"2/5 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
   tok_cfg = tokenizer_config.get_config(_TOKENIZER.value)
-  tok_cfg.data_dir = str(data_dir)
+  tok_cfg.data_dir, tok_cfg.seed = str(data_dir), _SEED.value
   tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
   _stage(f"3/5 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
+  diff_cfg.seed = _SEED.value
   diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
 
   teacher = diff_dir
@@ -96,12 +100,14 @@ def main(argv):
            start)
     dist_cfg = distill_config.get_config(_DISTILL.value)
     dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
+    dist_cfg.seed = _SEED.value
     distill_train.train(DistillConfig.from_config(dist_cfg), student)
     teacher = student
 
   _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
   base_cfg = baseline_config.get_config(_BASELINE.value)
   base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
+  base_cfg.seed = _SEED.value
   baseline_train.train(BaselineConfig.from_config(base_cfg), base_dir)
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)

@@ -2,6 +2,7 @@
 trainers, the loop without the prediction path; config sections become the typed configs,
 each field checked by the dataclass that holds it."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -58,7 +59,8 @@ def test_run_configs_become_the_typed_configs():
   assert demo.diffusion.control_scale == (4.0, 0.1) and demo.sampling.clip_x0 == 1.0
   assert demo.sampling.guidance.w_max_base == 0.5
   assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
-  assert demo.diffusion.class_weights == (3.0, 1.0, 1.0)  # chosen on val
+  assert demo.diffusion.class_weights == (2.0, 1.0, 1.0)  # chosen on val
+  assert demo.model.cond_hidden == (256, 256)  # chosen on val
   assert demo.diffusion.weighted_classes
   # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
   assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
@@ -71,6 +73,7 @@ def test_run_configs_become_the_typed_configs():
   assert demo.model.channel_mult == (1, 2, 2, 2) and demo.model.attention_levels == (3,)
   assert demo.model.num_tokens == 0 and demo.with_tokens(60).model.null_token == 60
   assert demo.model.cond_dim > 0 and paper.model.cond_dim == 0  # ego_film_residual vs token
+  assert paper.model.cond_hidden == ()
   unclipped = diffusion_config.get_config("demo")
   unclipped.sampling.clip_x0 = 0.0  # 0 = no clipping
   assert DiffusionConfig.from_config(unclipped).sampling.clip_x0 is None
@@ -114,3 +117,21 @@ def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value
   with pytest.raises(ConfigFieldError) as error:
     TokenizerRunConfig.from_config(_with(tokenizer_config.get_config("tiny"), field, value))
   assert error.value.field == field
+
+
+def test_cond_hidden_enters_the_fingerprint_only_when_set():
+  """A run config without `model.cond_hidden` (config.json of a run before the field) keeps
+  its fingerprint; a set width is part of it."""
+  from cvmdx_jax.runs import fingerprints
+  config = diffusion_config.get_config("demo")
+  del config.model["cond_hidden"]
+  before = DiffusionConfig.from_config(config).with_tokens(8)
+  assert before.model.cond_hidden == ()
+  meta = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
+  print_ = fingerprints.diffusion(before, "data", meta)
+  assert "cond_hidden" not in print_["model"]
+  assert print_["model"] == {k: v for k, v in dataclasses.asdict(before.model).items()
+                             if k != "cond_hidden"}
+  wide = dataclasses.replace(before, model=dataclasses.replace(before.model,
+                                                               cond_hidden=(256, 256)))
+  assert fingerprints.diffusion(wide, "data", meta)["model"]["cond_hidden"] == (256, 256)

@@ -4,7 +4,7 @@ Sources (`config.source`): 'sumo' (simulate the recordings of `config.sumo.recor
 `data_dir/recordings`, highD format, then read them like highD), 'highd' (`config.highd_dir`),
 'cvmd_mat' (`config.mat_dir/{train,test}`). Splits (`SPLITS`), disjoint by recording: sumo
 by `sumo_plan.split_ids`, highd by the recording ids of `config.splits` (train, val and test
-required, an empty test_ood skipped), cvmd_mat: test = `test/`, val = a seeded, per-class
+required, an empty test_ood or val_ood skipped), cvmd_mat: test = `test/`, val = a seeded, per-class
 `config.mat_val_fraction` of the `train/` files, train = the rest.
 The cache lives in `data_dir/cache` (see `cache`); it is reused only when it was made with the
 same settings from source files of the same content (names relative to the source directory,
@@ -24,12 +24,12 @@ from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
 
 SOURCES = ("sumo", "highd", "cvmd_mat")
-SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood
+SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood, val_ood
 _REQUIRED = ("train", "val", "test")
 # Ranges of the numeric fields of configs/dataset.py per section (a tuple: each element).
 CONFIG_RANGES = {
     "": {"seed": SEED, "mat_val_fraction": BELOW_ONE},
-    "splits": dict.fromkeys(("train", "val", "test", "test_ood"), POSITIVE),
+    "splits": dict.fromkeys(SPLITS, POSITIVE),
     "extraction": {"seed": SEED, "lc_offsets_s": POSITIVE, "kl_stride_s": POSITIVE,
                    "control_smoothing": NON_NEGATIVE, "control_iterations": POSITIVE},
     "sumo": {"seed": SEED, "warmup_s": NON_NEGATIVE, "truck_share": FRACTION,
@@ -37,8 +37,9 @@ CONFIG_RANGES = {
                               "lanes", "lane_width_m", "speed_limits_kmh", "flow_per_lane",
                               "car_types", "truck_types"), POSITIVE)},
     "sumo.recordings": {"train": POSITIVE, "val": POSITIVE, "test": POSITIVE,
-                        "test_ood": NON_NEGATIVE},
+                        "test_ood": NON_NEGATIVE, "val_ood": NON_NEGATIVE},
     "sumo.held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
+    "sumo.val_held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
 }
 
 

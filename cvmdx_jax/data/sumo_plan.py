@@ -1,13 +1,15 @@
 """Per-recording SUMO settings: the road, the traffic and the drivers of every recording.
 
 Recordings are numbered 1, 2, ... in split order (`cfg.recordings`: how many train, val, test,
-test_ood). Each gets a `RecordingPlan` drawn with `np.random.default_rng([cfg.seed, id])` from
+test_ood, val_ood). Each gets a `RecordingPlan` drawn with `np.random.default_rng([cfg.seed, id])` from
 the ranges of the `sumo` config section (documented in `configs/dataset.py`):
 - road and duration: lanes per direction cycle through `cfg.lanes` within each split (so a
   split of two or more recordings has both lane counts), lane width `cfg.lane_width_m`, speed
   limit one of `cfg.speed_limits_kmh`, `cfg.duration_s`;
   test_ood recordings take the held-out road `cfg.held_out` instead (lanes, lane width, speed
-  limit and flow per lane that no other recording has) and its recorded duration;
+  limit and flow per lane that no other recording has) and its recorded duration, val_ood
+  recordings a second held-out road `cfg.val_held_out` (for choosing settings on a road no
+  train recording has without reading test_ood);
 - traffic: flow per lane and carriageway, truck share, car-following model;
 - drivers: `cfg.car_types` car and `cfg.truck_types` truck vTypes. For each parameter with
   range (lo, hi) the recording draws a centre u ~ U(0, 1) per class, and each type a value at
@@ -23,7 +25,8 @@ import numpy as np
 
 from cvmdx_jax.storage import atomic
 
-SPLITS = ("train", "val", "test", "test_ood")
+SPLITS = ("train", "val", "test", "test_ood", "val_ood")  # val_ood last: adding it renumbers none
+HELD_OUT_ROADS = {"test_ood": "held_out", "val_ood": "val_held_out"}  # split -> cfg section
 CAR_FOLLOWING = ("Krauss", "IDM")
 _LOG_SCALE = ("lc_speed_gain", "lc_keep_right")  # ratios: drawn uniformly in log space
 
@@ -121,8 +124,8 @@ def _types(rng, ranges, vclass: str, count: int, share: float, spread: float) ->
 def draw(cfg, recording_id: int, split: str, index: int) -> RecordingPlan:
   """The plan of recording `recording_id`, the `index`-th recording of `split`."""
   rng = np.random.default_rng([cfg.seed, recording_id])
-  if split == "test_ood":
-    h = cfg.held_out
+  if split in HELD_OUT_ROADS:
+    h = cfg[HELD_OUT_ROADS[split]]
     road = Road(int(h.lanes), float(h.lane_width_m), float(h.speed_limit_kmh) / 3.6)
     flow = _uniform(rng, h.flow_per_lane)
     duration = float(h.duration_s)

@@ -49,6 +49,9 @@ class UNetConfig:
     padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)),
       (padded_length - length) // 2 zeros on the left, the rest on the right.
     cond_dim: width of the optional conditioning vector (0 = token only, the paper).
+    cond_hidden: widths of the hidden layers (SiLU) of the conditioning vector's MLP,
+      which ends in the embedding width; () = one hidden layer of the embedding width
+      (emb_mult * base_channels), as before this field existed.
   """
 
   num_tokens: int = 60
@@ -64,11 +67,13 @@ class UNetConfig:
   length: int = constants.T_PRED
   padded_length: int = 128
   cond_dim: int = 0
+  cond_hidden: tuple[int, ...] = ()
 
   def __post_init__(self):
     check_ranges(self, {**dict.fromkeys(("base_channels", "channel_mult", "num_res_blocks",
                                          "emb_mult", "num_heads", "groups"), POSITIVE),
-                        "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE})
+                        "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE,
+                        "cond_hidden": POSITIVE})
     factor = 2 ** (len(self.channel_mult) - 1)
     if self.padded_length % factor or self.padded_length < self.length:
       raise ValueError(f"padded_length={self.padded_length} must be >= length={self.length} "
@@ -96,8 +101,14 @@ class UNet1D(nnx.Module):
     self.time_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
     self.token_embed = nnx.Embed(config.num_tokens + 1, emb_dim, rngs=rngs)
     if config.cond_dim:
-      self.cond_mlp1 = nnx.Linear(config.cond_dim, emb_dim, rngs=rngs)
-      self.cond_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
+      # cond_mlp1 -> SiLU -> (cond_mlp_hidden[i] -> SiLU)* -> cond_mlp2 (names of the
+      # one-hidden-layer MLP kept, so that its checkpoints load)
+      widths = config.cond_hidden or (emb_dim,)
+      self.cond_mlp1 = nnx.Linear(config.cond_dim, widths[0], rngs=rngs)
+      if len(widths) > 1:
+        self.cond_mlp_hidden = nnx.List([nnx.Linear(a, b, rngs=rngs)
+                                         for a, b in zip(widths, widths[1:])])
+      self.cond_mlp2 = nnx.Linear(widths[-1], emb_dim, rngs=rngs)
     self.conv_in = nnx.Conv(config.channels, ch, kernel_size=(3,), rngs=rngs)
 
     skip_channels, down_blocks, down_samples, cur = [ch], [], [], ch
@@ -128,6 +139,19 @@ class UNet1D(nnx.Module):
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
 
+  def embedding(self, t, q, cond=None):
+    """The FiLM embedding (B, emb_mult * base_channels): the timestep's MLP + the token's
+    embedding (+ the conditioning vector's MLP where cond_dim > 0)."""
+    cfg = self.config
+    emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
+    emb = emb + self.token_embed(q)
+    if cfg.cond_dim:
+      h = jax.nn.silu(self.cond_mlp1(cond))
+      for layer in self.cond_mlp_hidden if len(cfg.cond_hidden) > 1 else ():
+        h = jax.nn.silu(layer(h))
+      emb = emb + self.cond_mlp2(h)
+    return emb
+
   def __call__(self, x_t, t, q, dropout_key=None, cond=None):
     cfg = self.config
     if (cond is None) != (cfg.cond_dim == 0):
@@ -136,10 +160,7 @@ class UNet1D(nnx.Module):
     keys = iter(jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
                 if dropout_key is not None else [])
     key = lambda: next(keys, None)
-    emb = self.time_mlp2(jax.nn.silu(self.time_mlp1(timestep_embedding(t, cfg.base_channels))))
-    emb = emb + self.token_embed(q)
-    if cfg.cond_dim:
-      emb = emb + self.cond_mlp2(jax.nn.silu(self.cond_mlp1(cond)))
+    emb = self.embedding(t, q, cond)
     length = x_t.shape[1]
     left = (cfg.padded_length - length) // 2
     h = self.conv_in(jnp.pad(x_t, ((0, 0), (left, cfg.padded_length - length - left), (0, 0))))

@@ -34,7 +34,10 @@ def diffusion(config, dataset_id: str, tokens_meta: dict) -> dict:
   tokens), T, the control scale, the dataset, the tokeniser checkpoint and (beyond the
   paper) the ego-motion conditioning and the class weights."""
   d = config.diffusion
-  return {"model": dataclasses.asdict(config.model), "num_diffusion_steps": d.num_steps,
+  model = dataclasses.asdict(config.model)
+  if not model["cond_hidden"]:  # the field's default: the fingerprints of the runs before it
+    del model["cond_hidden"]
+  return {"model": model, "num_diffusion_steps": d.num_steps,
           "control_scale": list(d.control_scale), "dataset_id": dataset_id,
           "tokenizer": tokenizer_checkpoint(tokens_meta),
           "conditioning": {"name": d.conditioning, "features": ego_motion.NUM_FEATURES,

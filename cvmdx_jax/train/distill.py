@@ -63,7 +63,7 @@ def student_config(teacher: DiffusionConfig, config: DistillConfig) -> Diffusion
 def student_params(teacher_params: dict, fresh: dict) -> dict:
   """The student's initial parameters: `fresh` (the student's own init) with every
   teacher leaf of the same path and shape; the teacher's first FiLM layer gets a zero
-  row for w; a FiLM MLP the teacher lacks keeps its fresh first layer and a zero output
+  row for w; a FiLM MLP the teacher lacks keeps its fresh hidden layers and a zero output
   layer (so the student's output equals the teacher's conditional v)."""
   teacher = traverse_util.flatten_dict(teacher_params)
   out = {}
@@ -76,7 +76,7 @@ def student_params(teacher_params: dict, fresh: dict) -> dict:
           (leaf.shape[0] - old.shape[0],) + leaf.shape[1:], leaf.dtype)])
     elif old is None and path[0] == "cond_mlp2":
       out[path] = jnp.zeros_like(leaf)
-    elif old is None and path[0] == "cond_mlp1":
+    elif old is None and path[0] in ("cond_mlp1", "cond_mlp_hidden"):
       out[path] = leaf
     else:
       raise TeacherMismatchError(f"student parameter {'/'.join(map(str, path))} "

@@ -19,12 +19,13 @@ def _sumo(preset=""):
 def test_splits_are_disjoint_consecutive_and_complete(preset):
   cfg = _sumo(preset)
   ids = sumo_plan.split_ids(cfg)
-  assert list(ids) == ["train", "val", "test", "test_ood"]
+  assert list(ids) == ["train", "val", "test", "test_ood", "val_ood"]
   flat = [i for name in ids for i in ids[name]]
   assert flat == list(range(1, len(flat) + 1))  # each id once, numbered 1.. in split order
-  assert all(len(ids[name]) >= 1 for name in ids)
+  assert all(len(ids[name]) >= 1 for name in ids if name != "val_ood")
+  assert len(ids["val_ood"]) == (0 if preset == "tiny" else 1)
   plans = sumo_plan.plans(cfg)
-  assert {p.split for p in plans.values()} == set(ids)
+  assert {p.split for p in plans.values()} == {name for name in ids if ids[name]}
   for name, members in ids.items():
     assert all(plans[i].split == name for i in members)
 
@@ -32,15 +33,26 @@ def test_splits_are_disjoint_consecutive_and_complete(preset):
 def test_default_sizes_of_the_presets():
   counts = {preset: {k: len(v) for k, v in sumo_plan.split_ids(_sumo(preset)).items()}
             for preset in ("", "small", "tiny")}
-  assert counts[""] == {"train": 10, "val": 2, "test": 3, "test_ood": 2}
-  assert counts["small"] == {"train": 12, "val": 2, "test": 2, "test_ood": 1}
+  assert counts[""] == {"train": 10, "val": 2, "test": 3, "test_ood": 2, "val_ood": 1}
+  assert counts["small"] == {"train": 12, "val": 2, "test": 2, "test_ood": 1, "val_ood": 1}
+
+
+def test_val_ood_renumbers_no_other_recording():
+  """val_ood is numbered last: the recordings (and their plans) of the other splits are those
+  of the same config without it."""
+  cfg = _sumo("small")
+  without = _sumo("small")
+  without.recordings.val_ood = 0
+  plans, before = sumo_plan.plans(cfg), sumo_plan.plans(without)
+  assert set(plans) - set(before) == set(sumo_plan.split_ids(cfg)["val_ood"])
+  assert all(plans[i] == before[i] for i in before)
 
 
 @pytest.mark.parametrize("preset", ["", "small", "tiny"])
 def test_held_out_road_is_in_no_other_split(preset):
   cfg = _sumo(preset)
   plans = sumo_plan.plans(cfg).values()
-  seen = [p for p in plans if p.split != "test_ood"]
+  seen = [p for p in plans if p.split not in sumo_plan.HELD_OUT_ROADS]
   held = [p for p in plans if p.split == "test_ood"]
   assert held
   for p in held:
@@ -49,6 +61,22 @@ def test_held_out_road_is_in_no_other_split(preset):
                and p.road.speed_limit_ms != q.road.speed_limit_ms for q in seen)
     assert p.flow_veh_per_hour > max(q.flow_veh_per_hour for q in seen)
     assert 700 <= p.flow_per_lane <= 900
+
+
+@pytest.mark.parametrize("preset", ["", "small"])
+def test_val_ood_road_is_in_no_other_split(preset):
+  """The val_ood road: lane width and speed limit of no train / val / test recording, and not
+  the test_ood road."""
+  plans = sumo_plan.plans(_sumo(preset)).values()
+  seen = [p for p in plans if p.split not in sumo_plan.HELD_OUT_ROADS]
+  ood = {p.road for p in plans if p.split == "test_ood"}
+  held = [p for p in plans if p.split == "val_ood"]
+  assert held
+  for p in held:
+    assert p.road == sumo_plan.Road(3, 3.5, 90.0 / 3.6) and p.road not in ood
+    assert all(p.road.lane_width_m != q.road.lane_width_m
+               and p.road.speed_limit_ms != q.road.speed_limit_ms for q in seen)
+    assert 800 <= p.flow_per_lane <= 1000
 
 
 def test_every_split_with_two_recordings_has_both_lane_counts():
@@ -69,7 +97,7 @@ def test_draws_lie_in_the_documented_ranges():
     assert 0.1 <= p.truck_share <= 0.3
     assert p.car_following in ("Krauss", "IDM")
     assert [t.vclass for t in p.types] == ["Car"] * 3 + ["Truck"] * 2
-    if p.split != "test_ood":
+    if p.split not in sumo_plan.HELD_OUT_ROADS:
       assert 500 <= p.flow_per_lane <= 1000 and p.road.lane_width_m == 3.75
       assert round(p.road.speed_limit_ms * 3.6) in (100, 120, 130)
     for t in p.types:

@@ -1,5 +1,7 @@
 """1-D U-Net: shapes, parameter count, null token, dropout, no retracing."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,6 +151,35 @@ def test_conditioning_vector_shapes_params_and_null_branch():
   np.testing.assert_array_equal(out, unet1d.apply_unet(g, p, x, t, q, cond=c1))
   solo = unet1d.apply_unet(g, p, x[1:2], t[1:2], q[1:2], cond=c1[1:2])
   np.testing.assert_allclose(solo, out[1:2], atol=1e-5)
+
+
+def test_conditioning_mlp_hidden_widths():
+  """cond_hidden = (h1, h2): cond_dim -> h1 -> h2 -> embedding, SiLU between; () is one
+  hidden layer of the embedding width (as before the field)."""
+  e = EGO.emb_mult * EGO.base_channels
+  wide = dataclasses.replace(EGO, cond_hidden=(48, 24))
+  g, p = unet1d.init_unet(wide, jax.random.key(5))
+  assert p["cond_mlp1"]["kernel"].shape == (13, 48)
+  assert p["cond_mlp_hidden"][0]["kernel"].shape == (48, 24)
+  assert p["cond_mlp2"]["kernel"].shape == (24, e)
+  assert unet1d.count_params(p) == (_params_count_by_hand(EGO) + 13 * 48 + 48 + 48 * 24 + 24
+                                    + 24 * e + e)
+  same = unet1d.init_unet(dataclasses.replace(EGO, cond_hidden=(e,)), jax.random.key(5))[1]
+  default = unet1d.init_unet(EGO, jax.random.key(5))[1]
+  assert jax.tree.all(jax.tree.map(np.array_equal, same, default))
+  with pytest.raises(ValueError, match="cond_hidden"):
+    dataclasses.replace(EGO, cond_hidden=(0,))
+  # the forward pass is the MLP written out by hand
+  x, t, q = _inputs()
+  c = jax.random.normal(jax.random.key(7), (3, 13))
+  layer = lambda h, name: h @ name["kernel"] + name["bias"]
+  h = jax.nn.silu(layer(jax.nn.silu(layer(c, p["cond_mlp1"])), p["cond_mlp_hidden"][0]))
+  time_emb = jax.nn.silu(layer(unet1d.timestep_embedding(t, EGO.base_channels),
+                               p["time_mlp1"]))
+  want = layer(time_emb, p["time_mlp2"]) + p["token_embed"]["embedding"][q] + layer(
+      h, p["cond_mlp2"])
+  model = nnx.merge(g, p)
+  np.testing.assert_allclose(model.embedding(t, q, c), want, rtol=1e-5, atol=1e-5)
 
 
 def test_conditioning_vector_required_iff_configured():

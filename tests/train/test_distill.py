@@ -15,10 +15,10 @@ TINY = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2),
                          attention_levels=(1,), num_heads=2, groups=8)
 
 
-@pytest.mark.parametrize("features", [0, 3])
-def test_the_student_starts_as_the_teachers_conditional_branch(features):
-  teacher_cfg = dataclasses.replace(TINY, cond_dim=features)
-  student_cfg = dataclasses.replace(TINY, cond_dim=features + 1)
+@pytest.mark.parametrize("features,hidden", [(0, ()), (3, ()), (0, (16, 8)), (3, (16, 8))])
+def test_the_student_starts_as_the_teachers_conditional_branch(features, hidden):
+  teacher_cfg = dataclasses.replace(TINY, cond_dim=features, cond_hidden=hidden)
+  student_cfg = dataclasses.replace(TINY, cond_dim=features + 1, cond_hidden=hidden)
   graphdef, teacher = unet1d.init_unet(teacher_cfg, jax.random.key(0))
   # a trained-looking teacher: its zero-initialised output layer would hide everything
   leaves, tree = jax.tree.flatten(teacher)
