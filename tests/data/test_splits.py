@@ -40,9 +40,10 @@ def test_highd_train_val_and_test_are_required(highd_config, tmp_path, split):
   assert info.value.column == f"splits.{split}"
 
 
-def test_highd_test_ood_is_built_when_given(highd_config, highd_dir, tmp_path):
+def test_highd_test_ood_and_val_ood_are_built_when_given(highd_config, highd_dir, tmp_path):
   from tests.data.conftest import write_recording
   write_recording(highd_dir, 4)
+  write_recording(highd_dir, 5)
   config = highd_config()
   config.splits.test_ood = (4,)
   splits = dataset.build(config, tmp_path / "out")
@@ -50,6 +51,14 @@ def test_highd_test_ood_is_built_when_given(highd_config, highd_dir, tmp_path):
   assert {k: sorted(set(v.recording_id.tolist())) for k, v in splits.items()} == {
       "train": [1], "val": [3], "test": [2], "test_ood": [4]}
   assert dataset.split_names(tmp_path / "out") == ["train", "val", "test", "test_ood"]
+  config.splits.val_ood = (5,)
+  splits = dataset.build(config, tmp_path / "out")
+  assert sorted(set(splits["val_ood"].recording_id.tolist())) == [5]
+  assert dataset.split_names(tmp_path / "out") == ["train", "val", "test", "test_ood",
+                                                   "val_ood"]
+  config.splits.val_ood = (4,)  # a recording in two splits
+  with pytest.raises(DataError, match="recording 4 is in both test_ood and val_ood"):
+    dataset.build(config, tmp_path / "out")
 
 
 def test_mat_val_index_is_stratified_and_seeded():
@@ -102,7 +111,8 @@ def test_sumo_tiny_splits_by_recording_and_held_out_road(tmp_path):
   config.extraction.balance = False
   splits = dataset.build(config, tmp_path)
   ids = sumo_plan.split_ids(config.sumo)
-  assert list(splits) == list(ids) == ["train", "val", "test", "test_ood"]
+  assert list(splits) == [name for name in ids if ids[name]] == ["train", "val", "test",
+                                                                  "test_ood"]
   for name, s in splits.items():
     assert len(s) > 0 and set(s.recording_id.tolist()) <= set(ids[name]), name
 
