@@ -20,11 +20,12 @@ Splits, all by recording (a recording's scenarios are in one split only):
   train files, drawn with `seed`.
 
 Default SUMO data: 10 train, 2 val and 3 test recordings of 240 s, 2 test_ood recordings
-of 100 s and 1 val_ood recording of 120 s (>= 9,000 train scenarios; sizes and build times in BUILD_NOTES.md). Ranges, one
-draw per recording, chosen to cover highD-like behaviour (car speeds mostly 80-130 km/h,
-trucks 80-90 km/h, 10-30 % trucks, lane changes over ~4-6 s): 3 or 2 lanes of 3.75 m, speed
-limit 100, 120 or 130 km/h, 500-1000 veh/h per lane, Krauss or IDM car following; driver
-ranges in `sumo.car` / `sumo.truck` (SUMO vType parameters, SI units).
+of 100 s and 1 val_ood recording of 120 s (>= 9,000 train scenarios; sizes and build times
+in BUILD_NOTES.md). Ranges, one draw per recording, chosen to cover highD-like behaviour
+(car speeds mostly 80-130 km/h, trucks 80-90 km/h, 10-30 % trucks, lane changes over ~4-6 s):
+3 or 2 lanes of 3.75 m, speed limit 100, 120 or 130 km/h, 500-1000 veh/h per lane, Krauss or
+IDM car following; driver ranges in `sumo.car` / `sumo.truck` (SUMO vType parameters, SI
+units).
 `:small` (the demo): 12 / 2 / 2 recordings of 120 s, 1 test_ood of 40 s and 1 val_ood of
 60 s (two val recordings, so that val holds both lane counts).
 """

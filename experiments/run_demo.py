@@ -42,8 +42,9 @@ _TOKENIZER = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.
 _DIFFUSION = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
 _DISTILL = flags.DEFINE_string("distill_preset", "demo", "configs/distill.py preset.")
 _DISTILL_STEPS = flags.DEFINE_list(
-    "distill_steps", [str(s) for s in distill_config.STUDENTS], "Students, one run each: a guidance student sampled in the "
-    "first count of steps, then progressive students, each for half its teacher's steps; "
+    "distill_steps", [str(s) for s in distill_config.STUDENTS],
+    "Students, one run each: a guidance student sampled in the first count of steps, "
+    "then progressive students, each for half its teacher's steps; "
     "empty: the report samples the guided denoiser.")
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
 _SEED = flags.DEFINE_integer("seed", 0, "Training seed of the tokeniser, denoiser, students "

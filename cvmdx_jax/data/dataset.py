@@ -4,8 +4,8 @@ Sources (`config.source`): 'sumo' (simulate the recordings of `config.sumo.recor
 `data_dir/recordings`, highD format, then read them like highD), 'highd' (`config.highd_dir`),
 'cvmd_mat' (`config.mat_dir/{train,test}`). Splits (`SPLITS`), disjoint by recording: sumo
 by `sumo_plan.split_ids`, highd by the recording ids of `config.splits` (train, val and test
-required, an empty test_ood or val_ood skipped), cvmd_mat: test = `test/`, val = a seeded, per-class
-`config.mat_val_fraction` of the `train/` files, train = the rest.
+required, an empty test_ood or val_ood skipped), cvmd_mat: test = `test/`, val = a seeded,
+per-class `config.mat_val_fraction` of the `train/` files, train = the rest.
 The cache lives in `data_dir/cache` (see `cache`); it is reused only when it was made with the
 same settings from source files of the same content (names relative to the source directory,
 sizes, sha256), otherwise rebuilt. `dataset_id` hashes exactly these, so it does not depend on

@@ -1,8 +1,9 @@
 """Per-recording SUMO settings: the road, the traffic and the drivers of every recording.
 
 Recordings are numbered 1, 2, ... in split order (`cfg.recordings`: how many train, val, test,
-test_ood, val_ood). Each gets a `RecordingPlan` drawn with `np.random.default_rng([cfg.seed, id])` from
-the ranges of the `sumo` config section (documented in `configs/dataset.py`):
+test_ood, val_ood). Each gets a `RecordingPlan` drawn with
+`np.random.default_rng([cfg.seed, id])` from the ranges of the `sumo` config section
+(documented in `configs/dataset.py`):
 - road and duration: lanes per direction cycle through `cfg.lanes` within each split (so a
   split of two or more recordings has both lane counts), lane width `cfg.lane_width_m`, speed
   limit one of `cfg.speed_limits_kmh`, `cfg.duration_s`;
