@@ -18,6 +18,7 @@ from cvmdx_jax.diffusion import GuidanceConfig
 from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,15 +123,14 @@ def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value
 def test_cond_hidden_enters_the_fingerprint_only_when_set():
   """A run config without `model.cond_hidden` (config.json of a run before the field) keeps
   its fingerprint; a set width is part of it."""
-  from cvmdx_jax.runs import fingerprints
   config = diffusion_config.get_config("demo")
   del config.model["cond_hidden"]
   before = DiffusionConfig.from_config(config).with_tokens(8)
   assert before.model.cond_hidden == ()
   meta = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
-  print_ = fingerprints.diffusion(before, "data", meta)
-  assert "cond_hidden" not in print_["model"]
-  assert print_["model"] == {k: v for k, v in dataclasses.asdict(before.model).items()
+  fingerprint = fingerprints.diffusion(before, "data", meta)
+  assert "cond_hidden" not in fingerprint["model"]
+  assert fingerprint["model"] == {k: v for k, v in dataclasses.asdict(before.model).items()
                              if k != "cond_hidden"}
   wide = dataclasses.replace(before, model=dataclasses.replace(before.model,
                                                                cond_hidden=(256, 256)))

@@ -83,6 +83,11 @@ class UNetConfig:
   def null_token(self) -> int:
     return self.num_tokens
 
+  @property
+  def cond_widths(self) -> tuple[int, ...]:
+    """Hidden widths of the conditioning vector's MLP (`cond_hidden`, or the embedding's)."""
+    return self.cond_hidden or (self.emb_mult * self.base_channels,)
+
 
 class UNet1D(nnx.Module):
   """`model(x_t (B, L, C), t (B,) int, q (B,) int[, cond (B, cond_dim)]) -> v (B, L, C)`."""
@@ -103,7 +108,7 @@ class UNet1D(nnx.Module):
     if config.cond_dim:
       # cond_mlp1 -> SiLU -> (cond_mlp_hidden[i] -> SiLU)* -> cond_mlp2 (names of the
       # one-hidden-layer MLP kept, so that its checkpoints load)
-      widths = config.cond_hidden or (emb_dim,)
+      widths = config.cond_widths
       self.cond_mlp1 = nnx.Linear(config.cond_dim, widths[0], rngs=rngs)
       if len(widths) > 1:
         self.cond_mlp_hidden = nnx.List([nnx.Linear(a, b, rngs=rngs)
@@ -147,7 +152,7 @@ class UNet1D(nnx.Module):
     emb = emb + self.token_embed(q)
     if cfg.cond_dim:
       h = jax.nn.silu(self.cond_mlp1(cond))
-      for layer in self.cond_mlp_hidden if len(cfg.cond_hidden) > 1 else ():
+      for layer in self.cond_mlp_hidden if len(cfg.cond_widths) > 1 else ():
         h = jax.nn.silu(layer(h))
       emb = emb + self.cond_mlp2(h)
     return emb
