@@ -172,14 +172,9 @@ class Checkpoints:
     return self
 
   def __exit__(self, *exc) -> None:
-    if self._ckptr is None:
-      return
-    try:
+    if self._ckptr is not None:
       with _holding_orbax_logs():
         self._ckptr.close()
-    except Exception:
-      if not self._failed:  # orbax raises a failed save's exception again on closing
-        raise
 
   @property
   def latest_step(self) -> int | None:
@@ -190,8 +185,11 @@ class Checkpoints:
     """Writes `state` (a pytree of arrays) and JSON `metadata` as `step`; blocks until done.
 
     On failure the exception is passed on, orbax's log records of the save are dropped and
-    its temporary directories removed; earlier steps are untouched.
+    its temporary directories removed; earlier steps are untouched. Saving again after a
+    failure needs a new `Checkpoints`.
     """
+    if self._failed:
+      raise ValueError(f"Checkpoints({self.root}): an earlier save failed; open it again")
     if self._ckptr is None:
       raise ValueError(f"Checkpoints({self.root}) was opened read-only")
     custom = {"cvmdx": identity.to_json(metadata, "checkpoint metadata")}
@@ -202,11 +200,28 @@ class Checkpoints:
         self._ckptr.wait()
     except BaseException:
       self._failed = True
-      _remove_temporaries(self.root)
+      self._close_after_failure()
       raise
     if jax.process_index() == 0:  # orbax has committed every process's files
       checksums.record_tree(self.root / str(step))
     self._steps = _complete_steps(self.root)[0]
+
+  def _close_after_failure(self) -> None:
+    """Closes orbax's checkpointer, then removes its temporary directories.
+
+    Orbax's metadata thread may still write into the failed step's temporary directory
+    after the error has surfaced. The first `close` raises that error again before joining
+    the thread (orbax 0.12); a second one joins it.
+    """
+    ckptr, self._ckptr = self._ckptr, None
+    for _ in range(2):
+      try:
+        with _quiet_orbax([]):
+          ckptr.close()
+        break
+      except Exception:  # the failed save's error, which `save` is passing on
+        continue
+    _remove_temporaries(self.root)
 
   def load(self, step: int, abstract_state: Any, *, partial: bool = False) -> tuple[Any, Any]:
     """Restores `step` into the structure, shapes and shardings of `abstract_state`.

@@ -144,6 +144,8 @@ def test_a_failed_save_leaves_no_temporary_directory_and_no_orbax_errors(tmp_pat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
     assert _orbax_records(caplog) == []
     assert ckpts.latest_step == 1
+    with pytest.raises(ValueError, match="an earlier save failed"):
+      ckpts.save(3, state, {"q": 3})
   restored, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(1, _abstract(state))
   assert meta == {"q": 1}
 
