@@ -43,9 +43,9 @@ _DIFFUSION = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.
 _DISTILL = flags.DEFINE_string("distill_preset", "demo", "configs/distill.py preset.")
 _DISTILL_STEPS = flags.DEFINE_list(
     "distill_steps", [str(s) for s in distill_config.STUDENTS],
-    "Students, one run each: a guidance student sampled in the first count of steps, "
-    "then progressive students, each for half its teacher's steps; "
-    "empty: the report samples the guided denoiser.")
+    "Students, one run each: a progressive student for the first count of steps taught "
+    "by the guided denoiser (guided_progressive), then progressive students, each for "
+    "half its teacher's steps; empty: the report samples the guided denoiser.")
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
 _SEED = flags.DEFINE_integer("seed", 0, "Training seed of the tokeniser, denoiser, students "
                              "and baseline (`config.seed` of each; the data stay the same).",
@@ -95,13 +95,13 @@ def main(argv):
 
   teacher = diff_dir
   for i, steps in enumerate(_DISTILL_STEPS.value):
-    kind = "progressive" if i else "guidance"
-    student = root / f"student_{kind}_{steps}"
+    student = root / f"student_progressive_{steps}"
+    kind = "progressive" if i else "guided progressive"
     _stage(f"3b/5 {kind} distillation, {steps} steps (preset {_DISTILL.value}) -> {student}",
            start)
     dist_cfg = distill_config.get_config(_DISTILL.value)
     dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
-    dist_cfg.seed = _SEED.value
+    dist_cfg.guided_progressive, dist_cfg.seed = i == 0, _SEED.value
     distill_train.train(DistillConfig.from_config(dist_cfg), student)
     teacher = student
 

@@ -120,8 +120,8 @@ def sample_rows() -> tuple[list[dict], str]:
   for path in _DISTILLED.value:
     student = dataclasses.replace(Predictor.load(_TOKENIZER.value, path),
                                   sampling=predictor.sampling)
-    taught = student.denoiser.fingerprint.to_dict()["distill"]
-    steps = (taught["steps"],) if taught["stage"] == "progressive" else _STUDENT_STEPS.value
+    steps = ((student.denoiser.config.sampling.steps,) if student.denoiser.progressive
+             else _STUDENT_STEPS.value)
     runs += [(student, "distilled", int(s), Path(path).name) for s in steps]
   rows = []
   for p, sampler, steps, run in runs:

@@ -98,6 +98,12 @@ def test_report_has_every_method_subset_and_figure(runs):
   assert saved["cv"]["all"]["num_scenarios"] == 30
   assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
   assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
+  for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
+    assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
+  table = (runs / "eval" / "results.md").read_text()
+  assert "| Constant velocity |" in table and "Brier-minFDE" in table
+  assert "out of distribution" in table and "Spearman" in table
+  assert "energy score of N [m]" in table and "ECE of p(c)" in table
 
 
 def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatch):
@@ -153,12 +159,6 @@ def test_report_sampling_overrides_reach_the_predictor(runs):
   mean = predictor(scenarios, seed=0).prediction.mean
   ade = np.linalg.norm(np.asarray(mean) - scenarios.future, axis=-1).mean()
   np.testing.assert_allclose(results["cvmdx_mean"]["all"]["ade"], ade, rtol=1e-5)
-  for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
-    assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
-  table = (runs / "eval" / "results.md").read_text()
-  assert "| Constant velocity |" in table and "Brier-minFDE" in table
-  assert "out of distribution" in table and "Spearman" in table
-  assert "energy score of N [m]" in table and "ECE of p(c)" in table
 
 
 def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
@@ -442,9 +442,10 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
       DiffusionConfig.from_config(diff)
 
 
-def _distill(teacher_dir, workdir, steps):
+def _distill(teacher_dir, workdir, steps, guided_progressive=False):
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.steps = str(teacher_dir), steps
+  config.guided_progressive = guided_progressive
   return distill.train(DistillConfig.from_config(config), workdir)
 
 
@@ -454,10 +455,13 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   teacher = runs_lib.load_denoiser(runs / "diffusion")
   _distill(runs / "diffusion", tmp_path / "guidance", 4)
   _distill(tmp_path / "guidance", tmp_path / "progressive", 2)
-  for name, steps in (("guidance", 4), ("progressive", 2)):
+  _distill(runs / "diffusion", tmp_path / "direct", 2, guided_progressive=True)
+  for name, steps, progressive in (("guidance", 4, False), ("progressive", 2, True),
+                                   ("direct", 2, True)):
     predictor = Predictor.load(runs / "tokenizer", tmp_path / name)
     student = predictor.denoiser.config
     assert (predictor.sampling.sampler, predictor.sampling.steps) == ("distilled", steps)
+    assert predictor.denoiser.progressive == progressive
     assert student.diffusion.guidance_input and student.model.cond_dim == 1
     assert student.model.num_tokens == teacher.config.model.num_tokens
     a, b = predictor(scenarios, seed=1), predictor(scenarios, seed=1)
@@ -478,7 +482,16 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   # a progressive student for 2 steps teaches one for 1 step, not another for 2
   with pytest.raises(distill.TeacherMismatchError, match="not steps=2"):
     _distill(tmp_path / "progressive", tmp_path / "again", 2)
+  for teacher_dir in ("direct", "guidance"):  # guided_progressive needs the guided pair
+    with pytest.raises(distill.TeacherMismatchError, match="not a guided denoiser"):
+      _distill(tmp_path / teacher_dir, tmp_path / "again", 1, guided_progressive=True)
   assert not (tmp_path / "again").exists()
+  # the student of one stage teaches the next halving, as a progressive student does
+  _distill(tmp_path / "direct", tmp_path / "halved", 1)
+  assert Predictor.load(runs / "tokenizer", tmp_path / "halved").sampling.steps == 1
+  # a guided_progressive run directory is not resumed as a guidance run of the same steps
+  with pytest.raises(checkpointing.CheckpointMismatchError):
+    _distill(runs / "diffusion", tmp_path / "direct", 2)
   # the distilled sampler needs a student; a student has no guided pair for the official mode
   with pytest.raises(ValueError, match="'distilled' needs a distilled denoiser"):
     Predictor.load(runs / "tokenizer", runs / "diffusion",

@@ -44,12 +44,6 @@ def _sampling_meta(predictor: Predictor) -> dict:
   return out
 
 
-def _progressive(predictor: Predictor) -> bool:
-  """Whether the predictor's denoiser is a progressive student (`train.distill`)."""
-  taught = predictor.denoiser.fingerprint.to_dict().get("distill", {})
-  return taught.get("stage") == "progressive"
-
-
 @locking.holds("workdir")
 def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
         seed: int = 0, max_scenarios: int = 0, ddpm_scenarios: int = 300,
@@ -112,7 +106,7 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
     results["cvmdx_best_of_k"][subset].update(row)
   ddpm_predictor = (predictor if ddpm_diffusion_dir is None
                     else Predictor.load(tokenizer_dir, ddpm_diffusion_dir))
-  if ddpm_scenarios and _progressive(ddpm_predictor):
+  if ddpm_scenarios and ddpm_predictor.denoiser.progressive:
     print(f"note: {ddpm_diffusion_dir or diffusion_dir} is a progressive student (it knows only its own steps): no "
           "single-DDPM row; pass the guided denoiser as the DDPM run", flush=True)
   elif ddpm_scenarios:

@@ -160,8 +160,10 @@ class DiffusionConfig:
 @dataclasses.dataclass(frozen=True)
 class DistillConfig:
   """A distillation run (configs/distill.py, `cvmdx_jax.train.distill`): one stage from a
-  teacher run. A guided denoiser teaches a guidance student (w as an input); a guidance
-  student teaches a progressive student for `steps` steps (itself sampled at 2 `steps`).
+  teacher run. A guided denoiser teaches a guidance student (w as an input), or with
+  `guided_progressive` a progressive student for `steps` steps directly; a guidance or
+  progressive student teaches a progressive student for `steps` steps (itself sampled at
+  2 `steps`).
 
   Attributes:
     teacher_dir: the teacher run (a diffusion run or a distillation run).
@@ -169,6 +171,9 @@ class DistillConfig:
       in the teacher's config.json).
     seed: the noise, timesteps, example order and (guidance stage) the new FiLM layer.
     steps: S, the student's sampling steps (`sampling.sampler` "distilled").
+    guided_progressive: with a guided denoiser as teacher, the student regresses two DDIM
+      steps of the guided pair on the grid of 2 S (guidance and one halving in one run)
+      instead of the guided v at every t.
     train: `DiffusionTrainConfig` (AdamW, EMA, epochs over the train split).
   """
 
@@ -177,6 +182,7 @@ class DistillConfig:
   tokenizer_dir: str = ""
   seed: int = 0
   steps: int = 2
+  guided_progressive: bool = False
   train: DiffusionTrainConfig = DiffusionTrainConfig()
 
   def __post_init__(self):

@@ -97,6 +97,13 @@ class Denoiser:
     return self.config.model
 
   @property
+  def progressive(self) -> bool:
+    """Whether this is a progressive student (`train.distill`), which samples only its own
+    steps."""
+    stage = self.fingerprint.to_dict().get("distill", {}).get("stage")
+    return stage in ("progressive", "guided_progressive")
+
+  @property
   def null_token(self) -> int:
     """The unconditional token (Q)."""
     return self.config.model.null_token

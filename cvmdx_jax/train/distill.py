@@ -6,10 +6,15 @@ One run is one stage (`diffusion.distillation`), chosen by the teacher:
   zero weight row for w (a token-only teacher gets a new FiLM MLP whose output layer is
   zero), so that before training it returns the teacher's conditional v;
 - a guidance student teaches a *progressive student* for `steps` steps, sampled by the
-  teacher at 2 `steps` (a progressive teacher must have been distilled for 2 `steps`).
+  teacher at 2 `steps` (a progressive teacher must have been distilled for 2 `steps`);
+- with `guided_progressive`, a guided denoiser teaches a progressive student directly
+  (stage "guided_progressive"): the targets are two DDIM steps of the guided pair on the
+  grid of 2 `steps`, the student initialised as for the guidance stage. One run instead
+  of two, each step 4 teacher evaluations instead of 2 (BUILD_NOTES.md, "One distillation
+  stage").
 
 x_t is the training data noised by the forward process (t uniform over the T steps for
-the guidance stage, over the student's grid for the progressive one), w = w(t, delta)
+the guidance stage, over the student's grid for the progressive ones), w = w(t, delta)
 with the teacher's guidance settings and each scenario's token uncertainty, the loss the
 weighted mean squared v error (the teacher's class weights). The run directory is a
 diffusion run directory (config.json = the student's `DiffusionConfig`, sampler
@@ -42,9 +47,12 @@ class TeacherMismatchError(ValueError):
   """The teacher cannot teach this run (wrong kind, steps or data)."""
 
 
-def stage_of(teacher: DiffusionConfig) -> str:
-  """"guidance" for a guided denoiser, "progressive" for a guidance student."""
-  return "progressive" if teacher.diffusion.guidance_input else "guidance"
+def stage_of(teacher: DiffusionConfig, guided_progressive: bool = False) -> str:
+  """"progressive" for a student teacher; for a guided denoiser "guided_progressive" if
+  asked, else "guidance"."""
+  if teacher.diffusion.guidance_input:
+    return "progressive"
+  return "guided_progressive" if guided_progressive else "guidance"
 
 
 def student_config(teacher: DiffusionConfig, config: DistillConfig) -> DiffusionConfig:
@@ -113,23 +121,25 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, sta
     ego = batch["ego"] if film else None
     eps = jax.random.normal(k_eps, x0.shape, x0.dtype)
     w_of = lambda t: guidance_weight(t, delta, d.num_steps, guidance)
-    if stage == "guidance":
-      t = jax.random.randint(k_t, (x0.shape[0],), 0, d.num_steps)
-      abar_t = schedule.alphas_cumprod[t]
-      x_t = param.q_sample(x0, eps, abar_t)
-      # the guided pair runs both branches in one call of 2B rows
+    if stage == "progressive":  # the teacher is a student: w is its input
+      teacher_v = lambda x, tt: unet1d.apply_unet(
+          teacher.graphdef, state["teacher"], x, tt, q,
+          cond=distillation.student_cond(ego, w_of(tt)))
+    else:  # the guided pair runs both branches in one call of 2B rows
       pair = lambda x: None if ego is None else jnp.tile(ego, (x.shape[0] // ego.shape[0], 1))
       model = lambda x, tt, c: unet1d.apply_unet(teacher.graphdef, state["teacher"], x, tt, c,
                                                  cond=pair(x))
-      target = guided_v_fn(model, q, teacher.null_token, delta, schedule, guidance)(x_t, t)
+      teacher_v = guided_v_fn(model, q, teacher.null_token, delta, schedule, guidance)
+    if stage == "guidance":
+      t = jax.random.randint(k_t, (x0.shape[0],), 0, d.num_steps)
+      x_t = param.q_sample(x0, eps, schedule.alphas_cumprod[t])
+      target = teacher_v(x_t, t)
     else:
       index = jax.random.randint(k_t, (x0.shape[0],), 0, steps)
       t, t_mid, abar_t, abar_mid, abar_next = distillation.progressive_grid(schedule, steps,
                                                                              index)
       x_t = param.q_sample(x0, eps, abar_t)
-      model = lambda x, tt: unet1d.apply_unet(teacher.graphdef, state["teacher"], x, tt, q,
-                                              cond=distillation.student_cond(ego, w_of(tt)))
-      target = distillation.progressive_target(model, x_t, t, t_mid, abar_t, abar_mid,
+      target = distillation.progressive_target(teacher_v, x_t, t, t_mid, abar_t, abar_mid,
                                                abar_next, clip)
     target = jax.lax.stop_gradient(target)
     cond = distillation.student_cond(ego, w_of(t))
@@ -148,9 +158,12 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, sta
 
 def check_teacher(teacher: loaders.Denoiser, config: DistillConfig) -> str:
   """The stage the teacher teaches; TeacherMismatchError where it cannot teach this run."""
-  stage = stage_of(teacher.config)
-  taught = teacher.fingerprint.to_dict().get("distill", {})
-  if taught.get("stage") == "progressive" and teacher.config.sampling.steps != 2 * config.steps:
+  stage = stage_of(teacher.config, config.guided_progressive)
+  if config.guided_progressive and stage != "guided_progressive":
+    raise TeacherMismatchError(
+        f"guided_progressive: teacher {config.teacher_dir} is a distilled student, not a "
+        "guided denoiser (a student teaches progressive students without it)")
+  if teacher.progressive and teacher.config.sampling.steps != 2 * config.steps:
     raise TeacherMismatchError(
         f"teacher {config.teacher_dir} is a progressive student for "
         f"{teacher.config.sampling.steps} steps: it teaches a student for "
