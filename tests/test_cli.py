@@ -118,6 +118,7 @@ CASES = [
     ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
     ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),
     ("run_demo", "--workdir={NEW} --seed=-1", "--seed=-1"),
+    ("run_demo", "--workdir={NEW} --ood_ddpm_scenarios=-1", "--ood_ddpm_scenarios=-1"),
     ("train_baseline", f"{BASE} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("train_baseline", "--config=configs/baseline.py:nosuch --workdir={NEW}",
      "--config=configs/baseline.py:nosuch"),

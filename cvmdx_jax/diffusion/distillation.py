@@ -15,6 +15,8 @@ same (x_t, t):
      x0~ = (x_n - r x_t) / (alpha_n - r alpha_t),   (alpha_n = 1, sigma_n = 0 at the end)
 
    expressed as its v (`param.v_from_x0_eps`) so the loss is the training v-loss.
+   With the guided pair of the teacher denoiser as the teacher (`train.distill`'s
+   "guided_progressive" stage) the two stages are one.
 
 The students sample with `distilled_sample`: deterministic DDIM over
 `distilled_timesteps` (S evaluations, the last update to abar = 1). The grids are nested
