@@ -6,6 +6,7 @@ import dataclasses
 import errno
 import json
 import os
+import shutil
 import subprocess
 import sys
 import types
@@ -510,11 +511,17 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
 
 @pytest.mark.slow
 def test_a_stopped_distillation_resumes_bit_identically(runs, tmp_path):
+  """The demo's one-stage run, stopped after its first epoch's checkpoint (the second one
+  removed, as a kill before it was written leaves the directory), then rerun."""
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.train.num_epochs = str(runs / "diffusion"), 2
+  config.steps, config.guided_progressive = 2, True
   whole = distill.train(DistillConfig.from_config(config), tmp_path / "whole")
-  config.train.num_epochs = 1
-  distill.train(DistillConfig.from_config(config), tmp_path / "stopped")
-  config.train.num_epochs = 2
+  shutil.copytree(tmp_path / "whole", tmp_path / "stopped")
+  shutil.rmtree(tmp_path / "stopped" / "checkpoints" / "2")
   resumed = distill.train(DistillConfig.from_config(config), tmp_path / "stopped")
   jax.tree.map(np.testing.assert_array_equal, whole["ema_params"], resumed["ema_params"])
+  assert int(resumed["step"]) == int(whole["step"])
+  # resumed, not restarted: epoch 1's line (with its wall time) is kept, epoch 2's rewritten
+  lines = lambda d: (tmp_path / d / "metrics.jsonl").read_text().splitlines()
+  assert len(lines("stopped")) == 2 and lines("stopped")[0] == lines("whole")[0]
