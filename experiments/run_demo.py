@@ -104,6 +104,8 @@ def main(argv):
     dist_cfg = distill_config.get_config(_DISTILL.value)
     dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
     dist_cfg.guided_progressive, dist_cfg.seed = i == 0, _SEED.value
+    if i:  # a halving: the student regresses two steps of its teacher
+      dist_cfg.teacher_substeps = 2
     distill_train.train(DistillConfig.from_config(dist_cfg), student)
     teacher = student
 

@@ -443,10 +443,10 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
       DiffusionConfig.from_config(diff)
 
 
-def _distill(teacher_dir, workdir, steps, guided_progressive=False):
+def _distill(teacher_dir, workdir, steps, guided_progressive=False, teacher_substeps=2):
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.steps = str(teacher_dir), steps
-  config.guided_progressive = guided_progressive
+  config.guided_progressive, config.teacher_substeps = guided_progressive, teacher_substeps
   return distill.train(DistillConfig.from_config(config), workdir)
 
 
@@ -457,8 +457,10 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   _distill(runs / "diffusion", tmp_path / "guidance", 4)
   _distill(tmp_path / "guidance", tmp_path / "progressive", 2)
   _distill(runs / "diffusion", tmp_path / "direct", 2, guided_progressive=True)
+  _distill(runs / "diffusion", tmp_path / "direct_k5", 2, guided_progressive=True,
+           teacher_substeps=5)
   for name, steps, progressive in (("guidance", 4, False), ("progressive", 2, True),
-                                   ("direct", 2, True)):
+                                   ("direct", 2, True), ("direct_k5", 2, True)):
     predictor = Predictor.load(runs / "tokenizer", tmp_path / name)
     student = predictor.denoiser.config
     assert (predictor.sampling.sampler, predictor.sampling.steps) == ("distilled", steps)
@@ -483,6 +485,12 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   # a progressive student for 2 steps teaches one for 1 step, not another for 2
   with pytest.raises(distill.TeacherMismatchError, match="not steps=2"):
     _distill(tmp_path / "progressive", tmp_path / "again", 2)
+  with pytest.raises(distill.TeacherMismatchError, match="teacher_substeps=3 .* 0.666667 steps"):
+    _distill(tmp_path / "progressive", tmp_path / "again", 1, teacher_substeps=3)
+  # k teacher steps a student step: the fingerprint names k where it is not the halving
+  recorded = lambda d: runs_lib.load_denoiser(tmp_path / d).fingerprint.to_dict()["distill"]
+  assert recorded("direct_k5")["teacher_substeps"] == 5
+  assert "teacher_substeps" not in recorded("direct")
   for teacher_dir in ("direct", "guidance"):  # guided_progressive needs the guided pair
     with pytest.raises(distill.TeacherMismatchError, match="not a guided denoiser"):
       _distill(tmp_path / teacher_dir, tmp_path / "again", 1, guided_progressive=True)

@@ -9,9 +9,11 @@ same (x_t, t):
    pair at w = w(t, delta) (`guidance.guided_v_fn`): one evaluation replaces the pair.
 2. Progressive distillation (Salimans & Ho 2022, Algorithm 2): a student for S steps
    regresses the x0 with which one deterministic DDIM step t_i -> t_{i+1} lands where two
-   teacher steps t_i -> t_mid -> t_{i+1} land (teacher: the previous student at 2S steps):
+   teacher steps t_i -> t_mid -> t_{i+1} land (teacher: the previous student at 2S steps),
+   or, generally, where k teacher steps of the grid of k S land (`substeps` = k; k = 5
+   with S = 2 regresses the teacher's 10-step DDIM):
 
-     x_n = two teacher DDIM steps from x_t,   r = sigma_n / sigma_t,
+     x_n = k teacher DDIM steps from x_t,   r = sigma_n / sigma_t,
      x0~ = (x_n - r x_t) / (alpha_n - r alpha_t),   (alpha_n = 1, sigma_n = 0 at the end)
 
    expressed as its v (`param.v_from_x0_eps`) so the loss is the training v-loss.
@@ -20,7 +22,7 @@ same (x_t, t):
 
 The students sample with `distilled_sample`: deterministic DDIM over
 `distilled_timesteps` (S evaluations, the last update to abar = 1). The grids are nested
-(`distilled_timesteps(T, 2S)[::2] == distilled_timesteps(T, S)`), as progressive
+(`distilled_timesteps(T, k S)[::k] == distilled_timesteps(T, S)`), as progressive
 distillation needs.
 """
 
@@ -41,8 +43,8 @@ def student_cond(ego, w):
 
 def distilled_timesteps(num_steps: int, steps: int) -> np.ndarray:
   """The S evaluation timesteps t_i = round((T - 1)(S - i) / S), halves rounded up,
-  i = 0..S-1, in exact integer arithmetic (so the grid of 2S holds the grid of S at its
-  even positions).
+  i = 0..S-1, in exact integer arithmetic (so the grid of k S holds the grid of S at every
+  k-th position).
 
   Returns:
     (S,) int32, strictly decreasing from T - 1.
@@ -95,36 +97,41 @@ def distilled_sample(v_fn, key, shape, schedule: Schedule, steps: int,
   return x0
 
 
-def progressive_grid(schedule: Schedule, steps: int, index: jax.Array):
-  """Per-example (t, t_mid, abar_t, abar_mid, abar_next) of student step `index` (B,) of
-  an S-step student, with the teacher's 2S-step grid in between."""
-  teacher_t, teacher_abar, teacher_next = step_abars(schedule, 2 * steps)
-  first, second = 2 * index, 2 * index + 1
-  return (teacher_t[first], teacher_t[second], teacher_abar[first], teacher_abar[second],
-          teacher_next[second])
+def progressive_grid(schedule: Schedule, steps: int, index: jax.Array, substeps: int = 2):
+  """The teacher's steps inside student step `index` (B,) of an S-step student: the grid of
+  `substeps` x S holds the student's grid at every `substeps`-th position.
+
+  Returns:
+    (ts (B, k), abars (B, k), abar_next (B,)): the k = `substeps` teacher timesteps from the
+    student's t on, their abar, and the abar the student step ends at (1 = clean).
+  """
+  teacher_t, teacher_abar, teacher_next = step_abars(schedule, substeps * steps)
+  positions = substeps * index[:, None] + jnp.arange(substeps)
+  return teacher_t[positions], teacher_abar[positions], teacher_next[positions[:, -1]]
 
 
-def progressive_target(teacher_v_fn, x_t, t, t_mid, abar_t, abar_mid, abar_next,
-                       clip_x0: float | None = None):
-  """The v-target of a progressive student at (x_t, t) (module docstring).
+def progressive_target(teacher_v_fn, x_t, ts, abars, abar_next, clip_x0: float | None = None):
+  """The v-target of a progressive student at (x_t, ts[:, 0]) (module docstring).
 
   Args:
     teacher_v_fn: (x, t (B,)) -> v of the teacher (one evaluation per step).
-    x_t: (B, ...) noisy inputs at t.
-    t, t_mid: (B,) int timesteps of the two teacher steps.
-    abar_t, abar_mid, abar_next: (B,) abar at t, t_mid and the step's target (1 = clean).
+    x_t: (B, ...) noisy inputs at ts[:, 0].
+    ts: (B, k) int timesteps of the teacher's k DDIM steps.
+    abars: (B, k) abar at ts; abar_next: (B,) abar of the step's end (1 = clean).
     clip_x0: the sampler's clip of predicted x0.
 
   Returns:
-    (B, ...) v at (x_t, abar_t) of the x0 that one DDIM step must use to reach the teacher's
-    two-step result.
+    (B, ...) v at (x_t, abars[:, 0]) of the x0 that one DDIM step must use to reach the
+    teacher's k-step result.
   """
-  x0, eps = predict_x0_eps(teacher_v_fn, x_t, t, abar_t, clip_x0)
-  x_mid = ddim_update(x0, eps, abar_mid)
-  x0, eps = predict_x0_eps(teacher_v_fn, x_mid, t_mid, abar_mid, clip_x0)
-  x_next = ddim_update(x0, eps, abar_next)
+  x = x_t
+  ends = [abars[:, j] for j in range(1, ts.shape[1])] + [abar_next]
+  for j, a_end in enumerate(ends):
+    x0, eps = predict_x0_eps(teacher_v_fn, x, ts[:, j], abars[:, j], clip_x0)
+    x = ddim_update(x0, eps, a_end)
   expand = lambda a: jnp.reshape(a, a.shape + (1,) * (x_t.ndim - a.ndim))
+  abar_t = abars[:, 0]
   a_t, a_next = expand(abar_t), expand(abar_next)
   ratio = jnp.sqrt((1.0 - a_next) / (1.0 - a_t))
-  x0_target = (x_next - ratio * x_t) / (jnp.sqrt(a_next) - ratio * jnp.sqrt(a_t))
+  x0_target = (x - ratio * x_t) / (jnp.sqrt(a_next) - ratio * jnp.sqrt(a_t))
   return param.v_from_x0_eps(x0_target, param.eps_from_x0(x_t, x0_target, abar_t), abar_t)

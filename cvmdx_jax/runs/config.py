@@ -16,7 +16,7 @@ import dataclasses
 from typing import Any, ClassVar
 
 from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
-                                        ConfigFieldError, check_ranges, to_dataclass)
+                                        ConfigFieldError, Range, check_ranges, to_dataclass)
 from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models.multiple_choice import MultipleChoiceConfig
@@ -171,9 +171,11 @@ class DistillConfig:
       in the teacher's config.json).
     seed: the noise, timesteps, example order and (guidance stage) the new FiLM layer.
     steps: S, the student's sampling steps (`sampling.sampler` "distilled").
-    guided_progressive: with a guided denoiser as teacher, the student regresses two DDIM
-      steps of the guided pair on the grid of 2 S (guidance and one halving in one run)
-      instead of the guided v at every t.
+    guided_progressive: with a guided denoiser as teacher, the student regresses k DDIM
+      steps of the guided pair on the grid of k S (guidance and progressive distillation
+      in one run) instead of the guided v at every t.
+    teacher_substeps: k, the teacher's DDIM steps per student step of a progressive stage
+      (2: Salimans & Ho's halving; a progressive teacher must sample k S steps).
     train: `DiffusionTrainConfig` (AdamW, EMA, epochs over the train split).
   """
 
@@ -183,11 +185,12 @@ class DistillConfig:
   seed: int = 0
   steps: int = 2
   guided_progressive: bool = False
+  teacher_substeps: int = 2
   train: DiffusionTrainConfig = DiffusionTrainConfig()
 
   def __post_init__(self):
     _check_run(self)
-    check_ranges(self, {"steps": POSITIVE})
+    check_ranges(self, {"steps": POSITIVE, "teacher_substeps": Range(">= 2", lambda v: v >= 2)})
 
   @classmethod
   def from_config(cls, config: Any) -> "DistillConfig":

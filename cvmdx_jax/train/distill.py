@@ -6,12 +6,12 @@ One run is one stage (`diffusion.distillation`), chosen by the teacher:
   zero weight row for w (a token-only teacher gets a new FiLM MLP whose output layer is
   zero), so that before training it returns the teacher's conditional v;
 - a guidance student teaches a *progressive student* for `steps` steps, sampled by the
-  teacher at 2 `steps` (a progressive teacher must have been distilled for 2 `steps`);
+  teacher at k `steps` (k = `teacher_substeps`, 2 by default: a progressive teacher must
+  have been distilled for k `steps`);
 - with `guided_progressive`, a guided denoiser teaches a progressive student directly
-  (stage "guided_progressive"): the targets are two DDIM steps of the guided pair on the
-  grid of 2 `steps`, the student initialised as for the guidance stage. One run instead
-  of two, each step 4 teacher evaluations instead of 2 (BUILD_NOTES.md, "One distillation
-  stage").
+  (stage "guided_progressive"): the targets are k DDIM steps of the guided pair on the
+  grid of k `steps`, the student initialised as for the guidance stage. One run instead
+  of two, each step 2 k teacher evaluations (BUILD_NOTES.md, "One distillation stage").
 
 x_t is the training data noised by the forward process (t uniform over the T steps for
 the guidance stage, over the student's grid for the progressive ones), w = w(t, delta)
@@ -105,9 +105,11 @@ def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
   return init_fn
 
 
-def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, stage: str):
-  """The pure train step: the teacher's v-target at noised data, the student's v-loss,
-  AdamW and the EMA (`train.diffusion.apply_gradients`)."""
+def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, stage: str,
+                 substeps: int = 2):
+  """The pure train step: the teacher's v-target at noised data (for a progressive stage
+  `substeps` teacher steps per student step), the student's v-loss, AdamW and the EMA
+  (`train.diffusion.apply_gradients`)."""
   d = student.diffusion
   schedule = cosine_schedule(d.num_steps)
   guidance, steps, clip = student.sampling.guidance, student.sampling.steps, \
@@ -136,11 +138,10 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, sta
       target = teacher_v(x_t, t)
     else:
       index = jax.random.randint(k_t, (x0.shape[0],), 0, steps)
-      t, t_mid, abar_t, abar_mid, abar_next = distillation.progressive_grid(schedule, steps,
-                                                                             index)
-      x_t = param.q_sample(x0, eps, abar_t)
-      target = distillation.progressive_target(teacher_v, x_t, t, t_mid, abar_t, abar_mid,
-                                               abar_next, clip)
+      ts, abars, abar_next = distillation.progressive_grid(schedule, steps, index, substeps)
+      t = ts[:, 0]
+      x_t = param.q_sample(x0, eps, abars[:, 0])
+      target = distillation.progressive_target(teacher_v, x_t, ts, abars, abar_next, clip)
     target = jax.lax.stop_gradient(target)
     cond = distillation.student_cond(ego, w_of(t))
     weight = batch["weight"] * batch.get("class_weight", 1.0)
@@ -163,14 +164,16 @@ def check_teacher(teacher: loaders.Denoiser, config: DistillConfig) -> str:
     raise TeacherMismatchError(
         f"guided_progressive: teacher {config.teacher_dir} is a distilled student, not a "
         "guided denoiser (a student teaches progressive students without it)")
-  if teacher.progressive and teacher.config.sampling.steps != 2 * config.steps:
+  k = config.teacher_substeps
+  if teacher.progressive and teacher.config.sampling.steps != k * config.steps:
     raise TeacherMismatchError(
         f"teacher {config.teacher_dir} is a progressive student for "
-        f"{teacher.config.sampling.steps} steps: it teaches a student for "
-        f"{teacher.config.sampling.steps // 2} steps, not steps={config.steps}")
-  if 2 * config.steps >= teacher.config.diffusion.num_steps:
-    raise TeacherMismatchError(f"steps={config.steps}: the teacher's grid of 2 x steps must "
-                               f"stay below T = {teacher.config.diffusion.num_steps}")
+        f"{teacher.config.sampling.steps} steps: with teacher_substeps={k} it teaches a "
+        f"student for {teacher.config.sampling.steps / k:g} steps, not steps={config.steps}")
+  if k * config.steps >= teacher.config.diffusion.num_steps:
+    raise TeacherMismatchError(
+        f"steps={config.steps}: the teacher's grid of teacher_substeps x steps = "
+        f"{k * config.steps} must stay below T = {teacher.config.diffusion.num_steps}")
   return stage
 
 
@@ -206,11 +209,14 @@ def train(config: DistillConfig, workdir: str | os.PathLike):
       "guidance": dataclasses.asdict(student.sampling.guidance),
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
+  if config.teacher_substeps != 2:  # the default: the fingerprints of the runs before it
+    fingerprint["distill"]["teacher_substeps"] = config.teacher_substeps
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(
       workdir=workdir, init_fn=make_init_fn(teacher.params, student.model, tx),
-      step_fn=make_step_fn(teacher, student, tx, stage=stage), data=data,
+      step_fn=make_step_fn(teacher, student, tx, stage=stage,
+                           substeps=config.teacher_substeps), data=data,
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
       fingerprint=fingerprint, checkpoint_every=config.train.checkpoint_every,
       keep=config.train.keep, on_start=lambda: layout.write_run_config(workdir, student),

@@ -21,10 +21,14 @@ def test_grids_are_nested_and_hand_worked():
   np.testing.assert_array_equal(distillation.distilled_timesteps(1000, 4), [999, 749, 500, 250])
   np.testing.assert_array_equal(distillation.distilled_timesteps(1000, 2), [999, 500])
   np.testing.assert_array_equal(distillation.distilled_timesteps(1000, 1), [999])
-  for steps in (1, 2, 3, 4, 5, 8, 16, 64, 499):
-    fine, coarse = (distillation.distilled_timesteps(1000, s) for s in (2 * steps, steps))
-    np.testing.assert_array_equal(fine[::2], coarse)
-    assert fine[0] == 999 and np.all(np.diff(fine) < 0) and fine[-1] > 0
+  # 999 * (10 - i) / 10: 899.1, 799.2, ..., 99.9 (rounded)
+  np.testing.assert_array_equal(distillation.distilled_timesteps(1000, 10),
+                                [999, 899, 799, 699, 599, 500, 400, 300, 200, 100])
+  for k in (2, 3, 5):
+    for steps in (1, 2, 3, 4, 5, 8, 16, 64, 199):
+      fine, coarse = (distillation.distilled_timesteps(1000, s) for s in (k * steps, steps))
+      np.testing.assert_array_equal(fine[::k], coarse)
+      assert fine[0] == 999 and np.all(np.diff(fine) < 0) and fine[-1] > 0
   for bad in (0, 1000):
     with pytest.raises(ValueError, match="steps"):
       distillation.distilled_timesteps(1000, bad)
@@ -52,40 +56,49 @@ def _teacher(schedule):
                        + 0.1 * jnp.sin(3.0 * x) * (t[:, None, None] / 1000.0))
 
 
-def test_one_step_with_the_target_lands_where_two_teacher_steps_land(schedule):
+@pytest.mark.parametrize("substeps", [2, 5])
+def test_one_step_with_the_target_lands_where_k_teacher_steps_land(schedule, substeps):
   teacher = _teacher(schedule)
   steps = 4
   index = jnp.array([0, 1, 2, 3, 3, 0])
-  t, t_mid, a_t, a_mid, a_next = distillation.progressive_grid(schedule, steps, index)
-  np.testing.assert_array_equal(t, distillation.distilled_timesteps(1000, 4)[index])
-  np.testing.assert_array_equal(t_mid, distillation.distilled_timesteps(1000, 8)[2 * index + 1])
+  ts, a_ts, a_next = distillation.progressive_grid(schedule, steps, index, substeps)
+  fine = distillation.distilled_timesteps(1000, substeps * steps)
+  np.testing.assert_array_equal(ts[:, 0], distillation.distilled_timesteps(1000, 4)[index])
+  for j in range(substeps):
+    np.testing.assert_array_equal(ts[:, j], fine[substeps * index + j])
   np.testing.assert_array_equal(a_next[index == 3], 1.0)
+  np.testing.assert_array_equal(a_next[index < 3],
+                                schedule.alphas_cumprod[fine[substeps * (index[index < 3] + 1)]])
   x_t = jax.random.normal(jax.random.key(1), (6, 5, 2))
-  v = distillation.progressive_target(teacher, x_t, t, t_mid, a_t, a_mid, a_next)
-  student = diffusion.x0_from_v(x_t, v, a_t), diffusion.eps_from_v(x_t, v, a_t)
+  v = distillation.progressive_target(teacher, x_t, ts, a_ts, a_next)
+  student = diffusion.x0_from_v(x_t, v, a_ts[:, 0]), diffusion.eps_from_v(x_t, v, a_ts[:, 0])
   one = distillation.ddim_update(*student, a_next)
-  # two teacher steps, written out with the parameterisation's own formulas
+  # k teacher steps, written out with the parameterisation's own formulas
   x = x_t
-  for tt, a, a_to in ((t, a_t, a_mid), (t_mid, a_mid, a_next)):
-    v_teacher = teacher(x, tt)
+  ends = [a_ts[:, j] for j in range(1, substeps)] + [a_next]
+  for j, a_to in enumerate(ends):
+    a, v_teacher = a_ts[:, j], teacher(x, ts[:, j])
     x0, eps = diffusion.x0_from_v(x, v_teacher, a), diffusion.eps_from_v(x, v_teacher, a)
     x = jnp.sqrt(a_to)[:, None, None] * x0 + jnp.sqrt(1.0 - a_to)[:, None, None] * eps
   np.testing.assert_allclose(one, x, atol=2e-5)
 
 
-def test_a_student_of_exact_targets_samples_as_the_teacher_at_twice_the_steps(schedule):
+@pytest.mark.parametrize("substeps", [2, 5])
+def test_a_student_of_exact_targets_samples_as_the_teacher_at_k_times_the_steps(schedule,
+                                                                                 substeps):
   teacher = _teacher(schedule)
-  steps = 4
+  steps = 2 if substeps == 5 else 4
   grid = jnp.asarray(distillation.distilled_timesteps(1000, steps))
 
   def student(x, t):
     index = jnp.argmax(grid[None, :] == t[:, None], axis=1)
     return distillation.progressive_target(
-        teacher, x, *distillation.progressive_grid(schedule, steps, index))
+        teacher, x, *distillation.progressive_grid(schedule, steps, index, substeps))
 
   x_T = jax.random.normal(jax.random.key(2), (64, 5, 2))
   fast = distillation.distilled_sample(student, None, x_T.shape, schedule, steps, x_T=x_T)
-  slow = distillation.distilled_sample(teacher, None, x_T.shape, schedule, 2 * steps, x_T=x_T)
+  slow = distillation.distilled_sample(teacher, None, x_T.shape, schedule, substeps * steps,
+                                       x_T=x_T)
   np.testing.assert_allclose(fast, slow, atol=1e-4)
 
 
