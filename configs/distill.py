@@ -66,17 +66,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train.learning_rate = 1e-3
     config.train.checkpoint_every = 1
   if arg.demo:
-    # ~230 steps over the :small train split, ~2 min on 2 cores: `make demo`'s one
-    # guided-progressive stage of 4 epochs matches the former guidance + progressive stages
-    # of 6 epochs each on val (within 0.3 %) in 0.39x their time (BUILD_NOTES.md, "One
-    # distillation stage")
+    # ~170 steps over the :small train split, ~2 min on 2 cores: `make demo`'s one
+    # guided-progressive stage. It regresses the guided teacher's 10-step DDIM (5 teacher
+    # steps a student step) instead of its 4-step one: on val (64 samples, k-means K = 3)
+    # mean ADE 0.729, minFDE_K 1.250, Brier-minFDE 1.599 against DDIM-10's 0.732 / 1.255 /
+    # 1.591 (k = 2 and 4 epochs, the demo until 2026-12-02: 0.734 / 1.281 / 1.668); 3
+    # epochs match 4 (0.727 / 1.252 / 1.603) at ~1.3x the epoch time of k = 2
+    # (BUILD_NOTES.md, "A 10-step teacher for the 2-step student")
     config.train.batch_size = 128
-    config.train.num_epochs = 4
+    config.train.num_epochs = 3
     config.train.learning_rate = 3e-4
     config.train.checkpoint_every = 2
-    # the one stage regresses the guided teacher's 10-step DDIM (5 teacher steps a student
-    # step) instead of its 4-step one: on val (64 samples, k-means K = 3) minFDE_K 1.252 and
-    # Brier-minFDE 1.603 against DDIM-10's 1.255 / 1.591 (k = 2: 1.281 / 1.668), at ~1.3x
-    # the stage's epoch time (BUILD_NOTES.md, "A 10-step teacher for the 2-step student")
     config.teacher_substeps = 5
   return config
