@@ -19,7 +19,7 @@ from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.runs import fingerprints
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig, TokenizerRunConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -109,6 +109,14 @@ def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value
   with pytest.raises(ConfigFieldError) as error:
     DiffusionConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
   assert error.value.field == field and problem in error.value.problem
+
+
+@pytest.mark.parametrize("value", [1, 0, 2.5])
+def test_distill_teacher_substeps_must_be_an_integer_of_at_least_two(value):
+  with pytest.raises(ConfigFieldError) as error:
+    DistillConfig(teacher_substeps=value)
+  assert error.value.field == "teacher_substeps" and "integer >= 2" in error.value.problem
+  assert DistillConfig(teacher_substeps=5).teacher_substeps == 5
 
 
 @pytest.mark.parametrize("field, value", [

@@ -157,13 +157,17 @@ class DiffusionConfig:
                                                                num_tokens=num_tokens))
 
 
+# DistillConfig.teacher_substeps: k teacher steps a student step
+_SUBSTEPS = Range("an integer >= 2", lambda v: v >= 2 and v == int(v))
+
+
 @dataclasses.dataclass(frozen=True)
 class DistillConfig:
   """A distillation run (configs/distill.py, `cvmdx_jax.train.distill`): one stage from a
   teacher run. A guided denoiser teaches a guidance student (w as an input), or with
   `guided_progressive` a progressive student for `steps` steps directly; a guidance or
   progressive student teaches a progressive student for `steps` steps (itself sampled at
-  2 `steps`).
+  `teacher_substeps` x `steps`).
 
   Attributes:
     teacher_dir: the teacher run (a diffusion run or a distillation run).
@@ -190,7 +194,7 @@ class DistillConfig:
 
   def __post_init__(self):
     _check_run(self)
-    check_ranges(self, {"steps": POSITIVE, "teacher_substeps": Range(">= 2", lambda v: v >= 2)})
+    check_ranges(self, {"steps": POSITIVE, "teacher_substeps": _SUBSTEPS})
 
   @classmethod
   def from_config(cls, config: Any) -> "DistillConfig":
