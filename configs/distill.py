@@ -15,8 +15,8 @@ step) or, with `guided_progressive`, a progressive student for `steps` steps dir
 student teaches a progressive student for `steps` steps. Each progressive student step
 regresses `teacher_substeps` (k) DDIM steps of its teacher: `:demo` takes k = 5 (the
 guided teacher's 10-step DDIM for a 2-step student); a progressive teacher samples only
-its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Presets after the path: `:tiny` (seconds, tests), `:demo`
-(the `make demo` stage on 2 cores). Any field can be overridden:
+its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Presets after
+the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores). Any field can be overridden:
 `--config.train.num_epochs=20`; the entry point checks every field once
 (`cvmdx_jax.runs.config.DistillConfig`).
 """
@@ -42,8 +42,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   config.tokenizer_dir = ""  # "" = the teacher's
   config.seed = 0  # noise, timesteps, example order, the new FiLM layer
   config.steps = 4  # S: the student's sampling steps (sampler "distilled")
-  # a guided denoiser teaches a progressive student for `steps` directly (its targets: two
-  # DDIM steps of the guided pair on the grid of 2 S) instead of a guidance student
+  # a guided denoiser teaches a progressive student for `steps` directly (its targets: k
+  # DDIM steps of the guided pair on the grid of k S) instead of a guidance student
   config.guided_progressive = False
   # k: the teacher's DDIM steps per student step of a progressive stage (2: a halving)
   config.teacher_substeps = 2

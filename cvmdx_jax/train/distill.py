@@ -106,7 +106,7 @@ def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
 
 
 def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, stage: str,
-                 substeps: int = 2):
+                 substeps: int):
   """The pure train step: the teacher's v-target at noised data (for a progressive stage
   `substeps` teacher steps per student step), the student's v-loss, AdamW and the EMA
   (`train.diffusion.apply_gradients`)."""
@@ -209,7 +209,7 @@ def train(config: DistillConfig, workdir: str | os.PathLike):
       "guidance": dataclasses.asdict(student.sampling.guidance),
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
-  if config.teacher_substeps != 2:  # the default: the fingerprints of the runs before it
+  if config.teacher_substeps != DistillConfig.teacher_substeps:  # runs before the field
     fingerprint["distill"]["teacher_substeps"] = config.teacher_substeps
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   tx = diffusion_train.optimizer(config.train, total_steps)
