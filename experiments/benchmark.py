@@ -119,7 +119,10 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
 def predict_calls(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
                   num_tokens: int = NUM_TOKENS, warmup: int = 1,
                   denoiser_config: DenoiserConfig = DenoiserConfig()) -> tuple[float, float]:
-  """`time_calls` of one jitted `predict_batch` call for `b` scenarios: (first, median) s."""
+  """`time_calls` of one jitted `predict_batch` call for `b` scenarios: (first, median) s;
+  `params` prepared for inference first, untimed, as `Predictor` does on construction
+  (`unet1d.prepare_params`)."""
+  params = unet1d.prepare_params(graphdef, params)
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(

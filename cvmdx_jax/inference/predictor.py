@@ -39,6 +39,7 @@ from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference.sampling import (Prediction, SamplingConfig, check_sampler,
                                           predict_batch)
+from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import identity
@@ -149,8 +150,10 @@ def _predict(tokenizer: loaders.TokenizerBundle, denoiser: loaders.Denoiser, xi,
 class Predictor:
   """Trained cVMDx: tokeniser bundle + denoiser + sampling settings.
 
-  On construction the tokeniser's and the denoiser's arrays are replicated over the
-  devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
+  On construction the denoiser's parameters are prepared for inference
+  (`unet1d.prepare_params`: the Winograd kernels transformed once, not in every call; the
+  same predictions bit for bit) and the tokeniser's and the denoiser's arrays are replicated
+  over the devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
   `delta_limit`: the largest delta over the tokeniser's train split (`load` reads it from
   `<tokenizer_dir>/tokens/train.npz`); scenarios above it are out of distribution (the
   default, inf, flags none).
@@ -165,8 +168,11 @@ class Predictor:
   def __post_init__(self):
     check_sampler(self.sampling, self.denoiser.config.diffusion.guidance_input)
     mesh = sharding.data_mesh()
+    denoiser = self.denoiser
+    denoiser = dataclasses.replace(denoiser, params=unet1d.prepare_params(denoiser.graphdef,
+                                                                          denoiser.params))
     object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
-    object.__setattr__(self, "denoiser", sharding.replicate(self.denoiser, mesh))
+    object.__setattr__(self, "denoiser", sharding.replicate(denoiser, mesh))
 
   @classmethod
   def load(cls, tokenizer_dir, diffusion_dir, sampling: SamplingConfig | None = None,

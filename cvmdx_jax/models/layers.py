@@ -52,6 +52,11 @@ class ResBlock(nnx.Module):
     self.skip = (nnx.Conv(in_ch, out_ch, kernel_size=(1,), rngs=rngs) if in_ch != out_ch
                  else None)
 
+  def prepare(self):
+    """For inference: both width-3 kernels `winograd.prepare_kernel`ed (idempotent)."""
+    for conv in (self.conv1, self.conv2):
+      conv.kernel.value = winograd.prepare_kernel(conv.kernel[...])
+
   def __call__(self, x, emb, dropout_key=None):
     h = conv_same3(self.conv1, self.norm1.silu(x))
     scale, shift = jnp.split(self.film(jax.nn.silu(emb)), 2, axis=-1)  # (B, C) each
@@ -114,11 +119,24 @@ class Upsample(nnx.Module):
   def __init__(self, channels: int, *, rngs: nnx.Rngs):
     self.conv = nnx.Conv(channels, channels, kernel_size=(3,), rngs=rngs)
 
-  def __call__(self, x):
+  def phase_kernel(self):
+    """(3, C, 2 C): both phases' kernels side by side."""
     w0, w1, w2 = self.conv.kernel[...]
     zero = jnp.zeros_like(w0)
-    kernel = jnp.concatenate([jnp.stack([w0, w1 + w2, zero]),     # output 2i
-                              jnp.stack([zero, w0 + w1, w2])], -1)  # output 2i + 1
-    y = winograd.conv3(x, kernel)  # (B, L, 2C)
+    return jnp.concatenate([jnp.stack([w0, w1 + w2, zero]),     # output 2i
+                            jnp.stack([zero, w0 + w1, w2])], -1)  # output 2i + 1
+
+  def prepare(self):
+    """For inference: `conv.kernel` becomes the prepared phase kernel where that is
+    transformed (`winograd.prepare_kernel`), so no call rebuilds it; idempotent."""
+    if winograd.is_transformed(self.conv.kernel[...]):
+      return
+    kernel = winograd.prepare_kernel(self.phase_kernel())
+    if winograd.is_transformed(kernel):
+      self.conv.kernel.value = kernel
+
+  def __call__(self, x):
+    kernel = self.conv.kernel[...]
+    y = winograd.conv3(x, kernel if winograd.is_transformed(kernel) else self.phase_kernel())
     b, length, channels = x.shape
     return y.reshape(b, 2 * length, channels) + self.conv.bias[...]

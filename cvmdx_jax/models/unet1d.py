@@ -18,6 +18,7 @@ Functional use: `graphdef, params = init_unet(config, key)`, then
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +27,7 @@ from flax import nnx
 from cvmdx_jax import constants
 from cvmdx_jax.config_dataclass import BELOW_ONE, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.models import functional
-from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, Upsample, group_norm,
+from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, ResBlock, Upsample, group_norm,
                                      timestep_embedding)
 
 
@@ -206,3 +207,17 @@ def apply_unet(graphdef, params, x_t, t, q, dropout_key=None, cond=None):
 
 def count_params(params) -> int:
   return sum(x.size for x in jax.tree.leaves(params))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def prepare_params(graphdef, params) -> dict:
+  """`params` for inference on this backend: the width-3 kernels that `winograd.conv3` runs
+  by F(4, 3) transformed once (`winograd.prepare_kernel`), so that no forward pass repeats
+  the transform (at the reference size ~12 ms a pass on 2 CPU cores, BUILD_NOTES.md). The
+  same function to float32 rounding; `apply_unet` takes either. Not for training or
+  checkpoints: the prepared kernels are another parametrisation."""
+  model = nnx.merge(graphdef, params)
+  for _, module in nnx.iter_graph(model):
+    if isinstance(module, (ResBlock, Upsample)):
+      module.prepare()
+  return nnx.to_pure_dict(nnx.split(model, nnx.Param)[1])

@@ -40,22 +40,46 @@ def _combine(matrix, terms):
   return rows
 
 
+def transform_kernel(kernel):
+  """The taps (3, C, O) in the transformed domain of F(4, 3): V = G g, (6, C, O)."""
+  return jnp.stack(_combine(_G, list(kernel)))
+
+
 def winograd_conv(x, kernel):
-  """x (B, L, C) with L % 4 == 0, kernel (3, C, O) -> (B, L, O): output i is
-  sum_k x[i + k - 1] @ kernel[k], x zero outside [0, L)."""
+  """x (B, L, C), kernel (3, C, O) or its `transform_kernel` (6, C, O) -> (B, L, O):
+  output i is sum_k x[i + k - 1] @ kernel[k], x zero outside [0, L). A length that is not
+  a multiple of 4 is zero-padded on the right and cropped back (the same zeros as "SAME")."""
   b, length, channels = x.shape
-  if length % TILE:
-    raise ValueError(f"winograd_conv needs a length divisible by {TILE}, got {length}")
-  tiles = length // TILE
+  tiles = -(-length // TILE)
   # blocks of 4: tile t reads padded positions 4 t .. 4 t + 5 (block t and two of t + 1)
-  blocks = jnp.pad(x, ((0, 0), (1, TILE - 1), (0, 0))).reshape(b, tiles + 1, TILE, channels)
+  right = tiles * TILE - length + TILE - 1
+  blocks = jnp.pad(x, ((0, 0), (1, right), (0, 0))).reshape(b, tiles + 1, TILE, channels)
   inputs = [blocks[:, :tiles, p] if p < TILE else blocks[:, 1:, p - TILE]
             for p in range(TILE + 2)]
   u = jnp.stack(_combine(_BT, inputs)).reshape(TILE + 2, b * tiles, channels)
-  v = jnp.stack(_combine(_G, list(kernel)))  # (6, C, O)
+  v = kernel if is_transformed(kernel) else transform_kernel(kernel)  # (6, C, O)
   m = jax.lax.dot_general(u, v, (((2,), (1,)), ((0,), (0,))))  # (6, B tiles, O)
   y = jnp.stack(_combine(_AT, list(m)), axis=1)  # (B tiles, 4, O)
-  return y.reshape(b, length, -1)
+  return y.reshape(b, tiles * TILE, -1)[:, :length]
+
+
+def is_transformed(kernel) -> bool:
+  """Whether `kernel` is a `transform_kernel` output (6 rows) rather than 3 taps."""
+  return kernel.shape[0] == TILE + 2
+
+
+def prepare_kernel(kernel):
+  """`kernel` (3, C, O) for inference: transformed once (`transform_kernel`) where `conv3`
+  takes F(4, 3) for it on this backend, so that no call repeats the transform; else as is
+  (also a kernel transformed already)."""
+  if not is_transformed(kernel) and eligible(kernel) and performance.current().resolved(jax.default_backend())["winograd"]:
+    return transform_kernel(kernel)
+  return kernel
+
+
+def eligible(kernel) -> bool:
+  """Whether both channel counts of `kernel` (K, C, O) reach MIN_CHANNELS."""
+  return min(kernel.shape[1:]) >= MIN_CHANNELS
 
 
 def direct_conv(x, kernel):
@@ -67,8 +91,11 @@ def direct_conv(x, kernel):
 def conv3(x, kernel):
   """The width-3 "SAME" convolution x (B, L, C) * kernel (3, C, O) -> (B, L, O):
   `winograd_conv` where C, O >= MIN_CHANNELS, L % 4 == 0 and the `winograd` performance
-  option takes it (module docstring), else XLA's convolution."""
+  option takes it (module docstring), else XLA's convolution; a `prepare_kernel`ed
+  (transformed) kernel always by `winograd_conv`, at any L."""
+  if is_transformed(kernel):
+    return winograd_conv(x, kernel)
   _, length, channels = x.shape
-  if min(channels, kernel.shape[-1]) >= MIN_CHANNELS and length % TILE == 0:
+  if eligible(kernel) and length % TILE == 0:
     return performance.select("winograd", winograd_conv, direct_conv, x, kernel)
   return direct_conv(x, kernel)

@@ -104,3 +104,34 @@ def test_use_sets_the_options_for_a_block_and_retraces_jitted_functions():
     conv(x, kernel)
   assert performance.current() == outside
   assert traced == ["on", "off", "on"]
+
+
+def _two_level_unet():
+  """128 channels on two levels: residual blocks and an upsampling that take Winograd."""
+  config = unet1d.UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1, 1),
+                             attention_levels=(), num_heads=1, length=6, padded_length=8)
+  graphdef, params = unet1d.init_unet(config, jax.random.key(0))
+  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape),
+                        params)
+  return graphdef, params
+
+
+def _transformed(params) -> int:
+  return sum(winograd.is_transformed(p) for p in jax.tree.leaves(params) if p.ndim == 3)
+
+
+@pytest.mark.parametrize("options, prepared", [(ON, 17), (OFF, 0)])
+def test_prepared_params_forward_bit_for_bit_and_idempotent(options, prepared):
+  graphdef, params = _two_level_unet()
+  x = jax.random.normal(jax.random.key(2), (3, 6, 2))
+  forward = jax.jit(lambda p: unet1d.apply_unet(graphdef, p, x, jnp.array([3, 500, 999]),
+                                                jnp.array([0, 4, 1])))
+  with performance.use(options):
+    once = unet1d.prepare_params(graphdef, params)
+    twice = unet1d.prepare_params(graphdef, once)
+    # the two width-3 kernels of 8 residual blocks (1 + 1 down, 2 mid, 2 + 2 up) and the
+    # upsampling's phase kernel
+    assert _transformed(once) == prepared
+    assert jax.tree.all(jax.tree.map(np.array_equal, twice, once))
+    assert np.array_equal(forward(once), forward(params))
+  assert _transformed(params) == 0  # the checkpoint's parameters are left as they are

@@ -52,6 +52,48 @@ def test_conv3_chooses_by_channels_and_length():
   np.testing.assert_allclose(winograd.conv3(x, kernel), _direct(x, kernel), rtol=1e-6)
 
 
-def test_rejects_a_length_it_cannot_tile():
-  with pytest.raises(ValueError, match="divisible by 4"):
-    winograd.winograd_conv(jnp.zeros((1, 6, 2)), jnp.zeros((3, 2, 2)))
+@pytest.mark.parametrize("length", [1, 6, 7, 18])
+def test_any_length_with_raw_or_transformed_taps(length):
+  # lengths that are not a multiple of 4 are zero-padded and cropped: the "SAME" zeros
+  x = jax.random.normal(jax.random.key(3), (2, length, 5))
+  kernel = jax.random.normal(jax.random.key(4), (3, 5, 4))
+  transformed = winograd.transform_kernel(kernel)
+  assert transformed.shape == (6, 5, 4) and winograd.is_transformed(transformed)
+  for taps in (kernel, transformed):
+    np.testing.assert_allclose(winograd.winograd_conv(x, taps), _direct(x, kernel),
+                               atol=1e-5 * float(jnp.max(jnp.abs(_direct(x, kernel)))))
+
+
+def test_transform_is_g_times_the_taps():
+  # V = G g with the rows of F(4, 3)'s G (Lavin & Gray 2016): (1/4, 0, 0),
+  # (-1/6, -1/6, -1/6), (-1/6, 1/6, -1/6), (1/24, 1/12, 1/6), (1/24, -1/12, 1/6), (0, 0, 1);
+  # one channel with taps (1, 2, 3) worked by hand
+  got = winograd.transform_kernel(jnp.array([1.0, 2.0, 3.0]).reshape(3, 1, 1))[:, 0, 0]
+  np.testing.assert_allclose(got, [1 / 4, -1, -1 / 3, 1 / 24 + 2 / 12 + 3 / 6,
+                                   1 / 24 - 2 / 12 + 3 / 6, 3], rtol=1e-6)
+
+
+def test_conv3_takes_a_transformed_kernel_at_any_length():
+  big = winograd.MIN_CHANNELS
+  x = jax.random.normal(jax.random.key(1), (2, 18, big))
+  kernel = jax.random.normal(jax.random.key(2), (3, big, big)) / 20
+  with performance.use(performance.PerformanceOptions(winograd="off")):
+    # a prepared kernel is in the transformed domain: only F(4, 3) can apply it
+    jaxpr = str(jax.make_jaxpr(winograd.conv3)(x, winograd.transform_kernel(kernel)))
+    out = winograd.conv3(x, winograd.transform_kernel(kernel))
+  assert "conv_general_dilated" not in jaxpr
+  np.testing.assert_allclose(out, _direct(x, kernel), atol=1e-5 * float(jnp.abs(out).max()))
+
+
+@pytest.mark.parametrize("option, transformed", [("on", True), ("off", False)])
+def test_prepare_kernel_by_channels_and_option(option, transformed):
+  big = winograd.MIN_CHANNELS
+  kernel = jax.random.normal(jax.random.key(5), (3, big, big))
+  small = jax.random.normal(jax.random.key(6), (3, big - 1, big))
+  with performance.use(performance.PerformanceOptions(winograd=option)):
+    prepared = winograd.prepare_kernel(kernel)
+    assert winograd.is_transformed(prepared) == transformed
+    assert winograd.prepare_kernel(small) is small  # too few channels: as is
+    assert winograd.prepare_kernel(prepared) is prepared  # idempotent
+  if transformed:
+    np.testing.assert_allclose(prepared, winograd.transform_kernel(kernel), rtol=1e-6)
