@@ -9,8 +9,10 @@ that keeps freed pages mapped removes that. The training entry points
 - jemalloc preloaded without page decay (`MALLOC_CONF=dirty_decay_ms:-1,muzzy_decay_ms:-1`)
   where `libjemalloc.so.2` is installed (Debian / Ubuntu: `apt-get install libjemalloc2`),
   or the path in `CVMDX_JEMALLOC`;
-- otherwise glibc's own allocator told not to use `mmap` or trim, in one arena
-  (`GLIBC_TUNABLES`).
+- otherwise glibc's own allocator told not to use `mmap` or trim, and to back its heap with
+  transparent huge pages (`GLIBC_TUNABLES`; `hugetlb` needs glibc >= 2.35, older ones
+  ignore it). One arena (`arena_max=1`), the setting until 2026-12-03, made the B = 1
+  prediction ~15 % slower and the training step no faster on 2 cores (BUILD_NOTES.md).
 Only on Linux. The choice is the option `CVMDX_ALLOCATOR`:
 - `auto` (or unset): the above, except where `JAX_PLATFORMS` names an accelerator first
   (`cuda`, `gpu`, `rocm`, `tpu`, ...): there the large buffers live in device memory, and
@@ -39,7 +41,7 @@ JEMALLOC_PATHS = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
                   "/usr/lib/libjemalloc.so.2", "/usr/local/lib/libjemalloc.so.2")
 JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1"
 GLIBC_TUNABLES = ("glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=68719476736:"
-                  "glibc.malloc.arena_max=1")
+                  "glibc.malloc.hugetlb=1")
 HELP_FLAGS = ("?", "help", "helpshort", "helpfull", "helpxml")  # absl's, after - or --
 
 

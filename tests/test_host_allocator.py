@@ -27,7 +27,7 @@ def test_glibc_tunables_without_jemalloc():
                                  exists=lambda p: False)
   assert env["GLIBC_TUNABLES"].split(":") == [
       "glibc.malloc.mmap_max=0", "glibc.malloc.trim_threshold=68719476736",
-      "glibc.malloc.arena_max=1", "glibc.cpu.x86_shstk=on"]
+      "glibc.malloc.hugetlb=1", "glibc.cpu.x86_shstk=on"]
   assert "LD_PRELOAD" not in env
 
 
