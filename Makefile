@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow benchmark clean
+.PHONY: install jemalloc demo test test-slow benchmark clean
 
 # The pinned dependencies, then this project editable (cvmdx_jax and configs importable from
 # anywhere; edits take effect without reinstalling). setuptools >= 70.1 builds it without
@@ -14,9 +14,22 @@ $(STAMP): requirements.lock pyproject.toml
 	$(PY) -m pip install -q --upgrade pip "setuptools>=70.1"
 	$(PY) -m pip install -q -r requirements.lock
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	@$(MAKE) --no-print-directory jemalloc
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# jemalloc, the faster host allocator of the training scripts (docs/usage.md, "Host
+# allocator"; training step ~7-13 % faster than with the glibc tunables): best effort, once,
+# where it is missing and apt-get can install it without asking (root). JEMALLOC=0 skips it.
+JEMALLOC ?= 1
+jemalloc:
+	@if [ "$(JEMALLOC)" = 1 ] && ! ldconfig -p 2>/dev/null | grep -q libjemalloc.so.2 \
+	    && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing libjemalloc2 with apt-get (faster training; JEMALLOC=0 skips it)"; \
+	  DEBIAN_FRONTEND=noninteractive timeout 120 apt-get install -y -q libjemalloc2 \
+	    >/dev/null 2>&1 || echo "libjemalloc2 not installed: the glibc tunables are used"; \
+	fi
 
 ## The main job: SUMO data -> CVQ-VAE -> diffusion -> evaluation (runs/demo/).
 demo: $(STAMP)
