@@ -168,9 +168,8 @@ class Predictor:
   def __post_init__(self):
     check_sampler(self.sampling, self.denoiser.config.diffusion.guidance_input)
     mesh = sharding.data_mesh()
-    denoiser = self.denoiser
-    denoiser = dataclasses.replace(denoiser, params=unet1d.prepare_params(denoiser.graphdef,
-                                                                          denoiser.params))
+    denoiser = dataclasses.replace(self.denoiser, params=unet1d.prepare_params(
+        self.denoiser.graphdef, self.denoiser.params))
     object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
     object.__setattr__(self, "denoiser", sharding.replicate(denoiser, mesh))
 

@@ -55,7 +55,7 @@ class ResBlock(nnx.Module):
   def prepare(self):
     """For inference: both width-3 kernels `winograd.prepare_kernel`ed (idempotent)."""
     for conv in (self.conv1, self.conv2):
-      conv.kernel.value = winograd.prepare_kernel(conv.kernel[...])
+      conv.kernel.set_value(winograd.prepare_kernel(conv.kernel[...]))
 
   def __call__(self, x, emb, dropout_key=None):
     h = conv_same3(self.conv1, self.norm1.silu(x))
@@ -133,7 +133,7 @@ class Upsample(nnx.Module):
       return
     kernel = winograd.prepare_kernel(self.phase_kernel())
     if winograd.is_transformed(kernel):
-      self.conv.kernel.value = kernel
+      self.conv.kernel.set_value(kernel)
 
   def __call__(self, x):
     kernel = self.conv.kernel[...]

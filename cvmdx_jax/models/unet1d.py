@@ -213,9 +213,10 @@ def count_params(params) -> int:
 def prepare_params(graphdef, params) -> dict:
   """`params` for inference on this backend: the width-3 kernels that `winograd.conv3` runs
   by F(4, 3) transformed once (`winograd.prepare_kernel`), so that no forward pass repeats
-  the transform (at the reference size ~12 ms a pass on 2 CPU cores, BUILD_NOTES.md). The
-  same function to float32 rounding; `apply_unet` takes either. Not for training or
-  checkpoints: the prepared kernels are another parametrisation."""
+  the transform (at the reference size ~12 ms a pass on 2 CPU cores, BUILD_NOTES.md);
+  idempotent. Jitted, the transform rounds as inside the forward pass: `apply_unet` gives the
+  same outputs bit for bit with either. Not for training or checkpoints: the prepared
+  kernels are another parametrisation."""
   model = nnx.merge(graphdef, params)
   for _, module in nnx.iter_graph(model):
     if isinstance(module, (ResBlock, Upsample)):

@@ -13,6 +13,10 @@ where both channel counts are >= 128, and not faster below (BUILD_NOTES.md, "Win
 "auto" (default) on the CPU backend only, chosen per platform when the function is
 lowered (elsewhere XLA's convolution, `direct_conv`); "on" wherever the channels allow,
 "off" never. Set by `CVMDX_WINOGRAD=auto|on|off` or `performance.use`.
+
+For inference the kernels' transform V = G g can be done once (`prepare_kernel`,
+`unet1d.prepare_params`, which `Predictor` calls): `conv3` applies a transformed kernel
+(6 rows instead of 3 taps) by F(4, 3) directly, whatever the option and the length.
 """
 
 import jax
@@ -72,9 +76,10 @@ def prepare_kernel(kernel):
   """`kernel` (3, C, O) for inference: transformed once (`transform_kernel`) where `conv3`
   takes F(4, 3) for it on this backend, so that no call repeats the transform; else as is
   (also a kernel transformed already)."""
-  if not is_transformed(kernel) and eligible(kernel) and performance.current().resolved(jax.default_backend())["winograd"]:
-    return transform_kernel(kernel)
-  return kernel
+  if is_transformed(kernel) or not eligible(kernel):
+    return kernel
+  fast = performance.current().resolved(jax.default_backend())["winograd"]
+  return transform_kernel(kernel) if fast else kernel
 
 
 def eligible(kernel) -> bool:
