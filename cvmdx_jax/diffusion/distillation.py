@@ -97,7 +97,7 @@ def distilled_sample(v_fn, key, shape, schedule: Schedule, steps: int,
   return x0
 
 
-def progressive_grid(schedule: Schedule, steps: int, index: jax.Array, substeps: int = 2):
+def progressive_grid(schedule: Schedule, steps: int, index: jax.Array, substeps: int):
   """The teacher's steps inside student step `index` (B,) of an S-step student: the grid of
   `substeps` x S holds the student's grid at every `substeps`-th position.
 
