@@ -124,10 +124,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.channel_mult = (1, 2, 2, 2)
     config.model.attention_levels = (3,)
     config.model.groups = 8
-    # batch 32 (was 128): 4x the optimiser steps (~6,900) in about the same CPU time; on
-    # val best of K 0.468 / 1.224 against 0.488 / 1.250 and mean ADE 0.726 against 0.729
-    # (student), right lane changes most (BUILD_NOTES.md, "Batch 32")
-    config.train.batch_size = 32
+    # batch 64 (was 128): twice the optimiser steps (~3,450) in the same CPU time; on val
+    # (student) mean ADE 0.721 against 0.729 and best of K 0.469 / 1.240 against 0.488 /
+    # 1.250; batch 32 gave 0.726 and 0.468 / 1.224 in ~10 % more time (BUILD_NOTES.md,
+    # "Smaller batches")
+    config.train.batch_size = 64
     # 30 over the 12 train recordings of dataset `:small`: `make demo` within 15 min on
     # the slowest 2-core machine measured (more epochs helped on val but took it to 21.6
     # min there; BUILD_NOTES.md)
