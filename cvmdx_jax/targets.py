@@ -33,6 +33,10 @@ class DenoiserConfig:
     guidance_input: the U-Net's last FiLM feature is the guidance weight w: a
       guidance-distilled student (`diffusion.distillation`), one evaluation per step in
       place of the guided pair (beyond the paper).
+    intent_conditioning: the U-Net also sees the maneuver class (one-hot keep lane, lcr,
+      lcl after the ego features): the true one in training, one drawn per sample from
+      its intent classifier on the ego features (`UNet1D.intent_logits`, trained beside it
+      by cross-entropy) in sampling (beyond the paper). Needs an `ego_film*` conditioning.
   """
 
   num_steps: int = 1000
@@ -42,6 +46,7 @@ class DenoiserConfig:
   residual_decay_s: tuple[float, float] = (3.0, 0.1)
   class_weights: tuple[float, ...] = (1.0,) * constants.NUM_CLASSES
   guidance_input: bool = False
+  intent_conditioning: bool = False
 
   RANGES: ClassVar = {"num_steps": POSITIVE, "cond_drop_prob": BELOW_ONE,
                       "control_scale": POSITIVE, "residual_decay_s": POSITIVE,
@@ -54,13 +59,29 @@ class DenoiserConfig:
                              f"need {constants.NUM_CLASSES} positive finite weights, one per "
                              f"class {constants.CLASS_NAMES}")
     ego_motion.check_conditioning(self.conditioning)
+    if self.intent_conditioning and not ego_motion.uses_film(self.conditioning):
+      raise ConfigFieldError("intent_conditioning", self.intent_conditioning,
+                             "the intent classifier reads the ego features: needs an "
+                             f"ego_film* conditioning, not {self.conditioning!r}")
 
   @property
   def cond_dim(self) -> int:
     """Width of the U-Net's FiLM conditioning vector: the ego-motion features of an
-    `ego_film*` conditioning, then w for a guidance student."""
+    `ego_film*` conditioning, then the one-hot maneuver class of an intent conditioning,
+    then w for a guidance student."""
     film = ego_motion.NUM_FEATURES if ego_motion.uses_film(self.conditioning) else 0
-    return film + int(self.guidance_input)
+    return film + self.num_intents + int(self.guidance_input)
+
+  @property
+  def num_intents(self) -> int:
+    """Classes of the U-Net's intent classifier: the maneuver classes where the intent
+    conditioning is on, else 0."""
+    return constants.NUM_CLASSES if self.intent_conditioning else 0
+
+  @property
+  def intent_features(self) -> int:
+    """Input width of the intent classifier: the ego features, where it is on."""
+    return ego_motion.NUM_FEATURES if self.intent_conditioning else 0
 
   @property
   def weighted_classes(self) -> bool:

@@ -533,3 +533,29 @@ def test_a_stopped_distillation_resumes_bit_identically(runs, tmp_path):
   # resumed, not restarted: epoch 1's line (with its wall time) is kept, epoch 2's rewritten
   lines = lambda d: (tmp_path / d / "metrics.jsonl").read_text().splitlines()
   assert len(lines("stopped")) == 2 and lines("stopped")[0] == lines("whole")[0]
+
+
+@pytest.mark.slow
+def test_intent_conditioned_run_trains_distills_and_predicts(runs, tmp_path):
+  diff = diffusion_config.get_config("tiny")
+  diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
+  diff.diffusion.conditioning = "ego_film_residual"
+  diff.diffusion.intent_conditioning = True
+  data, *_ = diffusion.training_data(DiffusionConfig.from_config(diff))
+  train = dataset.load_split(runs / "data", "train")
+  ego = np.asarray(ego_motion.ego_features(train.xi, train.mask))
+  np.testing.assert_allclose(data["ego"], np.concatenate([ego, np.eye(3)[train.label]], -1))
+  np.testing.assert_array_equal(data["label"], train.label)
+  _train_diffusion(diff, tmp_path / "intent")
+  scenarios = dataset.load_split(runs / "data", "test").take(np.arange(4))
+  predictor = Predictor.load(runs / "tokenizer", tmp_path / "intent")
+  assert predictor.denoiser.unet.num_intents == 3
+  a, b = predictor(scenarios, seed=1), predictor(scenarios, seed=1)
+  np.testing.assert_array_equal(a.prediction.trajectories, b.prediction.trajectories)
+  assert a.prediction.trajectories.shape == (4, 9, 125, 2)
+  _distill(tmp_path / "intent", tmp_path / "student", 2, guided_progressive=True)
+  student = Predictor.load(runs / "tokenizer", tmp_path / "student")
+  assert student.denoiser.unet.num_intents == 3 and student.denoiser.config.diffusion.guidance_input
+  out = student(scenarios, seed=1)
+  assert out.prediction.trajectories.shape == (4, 9, 125, 2)
+  assert np.isfinite(out.prediction.trajectories).all()

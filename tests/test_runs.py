@@ -76,6 +76,8 @@ def test_run_configs_become_the_typed_configs():
   assert demo.model.num_tokens == 0 and demo.with_tokens(60).model.null_token == 60
   assert demo.model.cond_dim > 0 and paper.model.cond_dim == 0  # ego_film_residual vs token
   assert paper.model.cond_hidden == ()
+  assert demo.diffusion.intent_conditioning and demo.model.num_intents == 3  # chosen on val
+  assert not paper.diffusion.intent_conditioning and paper.model.num_intents == 0
   unclipped = diffusion_config.get_config("demo")
   unclipped.sampling.clip_x0 = 0.0  # 0 = no clipping
   assert DiffusionConfig.from_config(unclipped).sampling.clip_x0 is None
@@ -134,13 +136,14 @@ def test_cond_hidden_enters_the_fingerprint_only_when_set():
   its fingerprint; a set width is part of it."""
   config = diffusion_config.get_config("demo")
   del config.model["cond_hidden"]
+  del config.diffusion["intent_conditioning"]  # a run before either field
   before = DiffusionConfig.from_config(config).with_tokens(8)
   assert before.model.cond_hidden == ()
   meta = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
   fingerprint = fingerprints.diffusion(before, "data", meta)
   assert "cond_hidden" not in fingerprint["model"]
   assert fingerprint["model"] == {k: v for k, v in dataclasses.asdict(before.model).items()
-                             if k != "cond_hidden"}
+                                  if k not in ("cond_hidden", "num_intents", "intent_features")}
   wide = dataclasses.replace(before, model=dataclasses.replace(before.model,
                                                                cond_hidden=(256, 256)))
   assert fingerprints.diffusion(wide, "data", meta)["model"]["cond_hidden"] == (256, 256)

@@ -19,7 +19,7 @@ from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddi
                                  official_ddim_sample)
 from cvmdx_jax.diffusion.distillation import distilled_sample, student_cond
 from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
-from cvmdx_jax.models.unet1d import apply_unet
+from cvmdx_jax.models.unet1d import apply_intent, apply_unet
 from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
 
 SAMPLERS = ("ddim", "ddpm", "dpmpp2m", "distilled")
@@ -106,14 +106,18 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
                     config: SamplingConfig, ego=None, guidance_input: bool = False):
   """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2).
 
-  ego: (F,) ego-motion features for a U-Net with cond_dim = F, else None. Both guidance
-  branches get them: the unconditional branch drops only the token (the paper's CFG).
+  ego: (F,) ego-motion features for a U-Net with cond_dim = F, or (N, F) one row a sample
+  (an intent conditioning's drawn class), else None. Both guidance branches get them: the
+  unconditional branch drops only the token (the paper's CFG).
   guidance_input: the U-Net is a guidance student (its last FiLM feature is w(t, delta)):
   one evaluation per step replaces the guided pair.
   """
   check_sampler(config, guidance_input)
   n = config.num_samples
-  cond = lambda x_t: None if ego is None else jnp.broadcast_to(ego, (len(x_t), ego.shape[-1]))
+  if ego is not None:
+    ego = jnp.broadcast_to(ego, (n, ego.shape[-1]))
+  # the guided pair evaluates 2N rows: each sample's features twice
+  cond = lambda x_t: None if ego is None else jnp.tile(ego, (len(x_t) // n, 1))
   model_fn = lambda x_t, t, c: apply_unet(graphdef, params, x_t, t, c, cond=cond(x_t))
   shape = (n, constants.T_PRED, 2)
   if guidance_input:
@@ -144,6 +148,15 @@ def _sample(v_fn, key, shape, schedule: Schedule, config: SamplingConfig):
                      clip_x0=config.clip_x0)
 
 
+def draw_intents(logits, key, n: int):
+  """n maneuver classes (n,) int drawn from softmax(logits) (C,) by systematic sampling
+  (one uniform offset, n evenly spaced points on the cumulative probabilities): class c
+  gets n p_c samples, up to one, in class order."""
+  u = (jnp.arange(n) + jax.random.uniform(key)) / n
+  cdf = jnp.cumsum(jax.nn.softmax(logits))
+  return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[-1] - 1)
+
+
 def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, schedule: Schedule,
                   null_token: int, config: SamplingConfig = SamplingConfig(),
                   denoiser_config: targets.DenoiserConfig = targets.DenoiserConfig()
@@ -172,6 +185,12 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
   if conditioning != "token" and ego is None:
     raise ValueError(f"predict_batch: conditioning {conditioning!r} needs ego features")
   film = ego if ego_motion.uses_film(conditioning) else None
+  if denoiser_config.intent_conditioning:
+    keys, intent_keys = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
+    logits = apply_intent(graphdef, params, ego)
+    intents = jax.vmap(draw_intents, (0, 0, None))(logits, intent_keys, config.num_samples)
+    film = jnp.concatenate([jnp.broadcast_to(ego[:, None], intents.shape + ego.shape[-1:]),
+                            jax.nn.one_hot(intents, logits.shape[-1], dtype=ego.dtype)], -1)
   x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
       graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
       config=config, ego=ei, guidance_input=denoiser_config.guidance_input))(

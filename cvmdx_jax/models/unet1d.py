@@ -53,6 +53,10 @@ class UNetConfig:
     cond_hidden: widths of the hidden layers (SiLU) of the conditioning vector's MLP,
       which ends in the embedding width; () = one hidden layer of the embedding width
       (emb_mult * base_channels), as before this field existed.
+    num_intents: classes of the intent classifier (`intent_logits`: an MLP with the
+      conditioning MLP's hidden widths from the first `intent_features` entries of the
+      conditioning vector to logits; beyond the paper); 0 = none.
+    intent_features: width of the classifier's input (the ego features).
   """
 
   num_tokens: int = 60
@@ -69,12 +73,20 @@ class UNetConfig:
   padded_length: int = 128
   cond_dim: int = 0
   cond_hidden: tuple[int, ...] = ()
+  num_intents: int = 0
+  intent_features: int = 0
 
   def __post_init__(self):
     check_ranges(self, {**dict.fromkeys(("base_channels", "channel_mult", "num_res_blocks",
                                          "emb_mult", "num_heads", "groups"), POSITIVE),
                         "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE,
-                        "cond_hidden": POSITIVE})
+                        "cond_hidden": POSITIVE, "num_intents": NON_NEGATIVE,
+                        "intent_features": NON_NEGATIVE})
+    if bool(self.num_intents) != bool(self.intent_features) or (
+        self.intent_features > self.cond_dim):
+      raise ValueError(f"num_intents={self.num_intents}, intent_features="
+                       f"{self.intent_features}: the intent classifier needs both, and reads "
+                       f"the first intent_features of the cond_dim={self.cond_dim} inputs")
     factor = 2 ** (len(self.channel_mult) - 1)
     if self.padded_length % factor or self.padded_length < self.length:
       raise ValueError(f"padded_length={self.padded_length} must be >= length={self.length} "
@@ -144,6 +156,10 @@ class UNet1D(nnx.Module):
     self.norm_out = group_norm(cur, config.groups)
     self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
                              kernel_init=nnx.initializers.zeros, rngs=rngs)
+    if config.num_intents:  # last, so that every other parameter draws as without it
+      widths = (config.intent_features,) + config.cond_widths + (config.num_intents,)
+      self.intent_mlp = nnx.List([nnx.Linear(a, b, rngs=rngs)
+                                  for a, b in zip(widths, widths[1:])])
 
   def embedding(self, t, q, cond=None):
     """The FiLM embedding (B, emb_mult * base_channels): the timestep's MLP + the token's
@@ -157,6 +173,13 @@ class UNet1D(nnx.Module):
         h = jax.nn.silu(layer(h))
       emb = emb + self.cond_mlp2(h)
     return emb
+
+  def intent_logits(self, features):
+    """Intent classifier logits (B, num_intents) for features (B, intent_features)."""
+    h = features
+    for layer in self.intent_mlp[:-1]:
+      h = jax.nn.silu(layer(h))
+    return self.intent_mlp[-1](h)
 
   def __call__(self, x_t, t, q, dropout_key=None, cond=None):
     cfg = self.config
@@ -203,6 +226,12 @@ def make_graphdef(config: UNetConfig):
 def apply_unet(graphdef, params, x_t, t, q, dropout_key=None, cond=None):
   """Functional forward pass: v (B, L, C); cond (B, cond_dim) iff cond_dim > 0."""
   return nnx.merge(graphdef, params)(x_t, t, q, dropout_key, cond)
+
+
+def apply_intent(graphdef, params, features):
+  """Functional intent classifier: logits (B, num_intents) for features (B,
+  intent_features)."""
+  return nnx.merge(graphdef, params).intent_logits(features)
 
 
 def count_params(params) -> int:

@@ -116,7 +116,8 @@ class DiffusionConfig:
     tokenizer_dir: the tokeniser run whose tokens condition the denoiser.
     seed: init, example order and step keys.
     model: the U-Net; `num_tokens` is 0 until the trainer sets it to the tokens' Q
-      (`with_tokens`), `cond_dim` follows `diffusion.conditioning`.
+      (`with_tokens`), `cond_dim` follows `diffusion.conditioning`, `num_intents` and
+      `intent_features` `diffusion.intent_conditioning`.
     diffusion: the denoiser's `targets.DenoiserConfig`.
     train: `DiffusionTrainConfig`.
     sampling: the run's default `SamplingConfig`.
@@ -138,6 +139,12 @@ class DiffusionConfig:
                        f"conditioning has {cond_dim - self.diffusion.guidance_input} ego-motion "
                        "features (cvmdx_jax/ego_motion.py, FEATURES)"
                        f"{' and the guidance weight' if self.diffusion.guidance_input else ''}")
+    d = self.diffusion
+    if (self.model.num_intents, self.model.intent_features) != (d.num_intents,
+                                                                d.intent_features):
+      raise ValueError(f"model.num_intents={self.model.num_intents}, model.intent_features="
+                       f"{self.model.intent_features}: diffusion.intent_conditioning="
+                       f"{d.intent_conditioning} needs {d.num_intents}, {d.intent_features}")
 
   @classmethod
   def from_config(cls, config: Any) -> "DiffusionConfig":
@@ -148,6 +155,8 @@ class DiffusionConfig:
     model = dict(sections.pop("model").items())
     model.setdefault("num_tokens", 0)
     model.setdefault("cond_dim", diffusion.cond_dim)
+    model.setdefault("num_intents", diffusion.num_intents)
+    model.setdefault("intent_features", diffusion.intent_features)
     return to_dataclass(cls, sections, diffusion=diffusion,
                         model=to_dataclass(UNetConfig, model, where="model"))
 

@@ -4,7 +4,10 @@ Targets: normalised controls x0 = clip([a_x / 4, yaw_rate / 0.7], -1, 1), (M, 12
 (with an `ego_*residual` conditioning: of controls minus the ego's extrapolated current
 controls); condition: the tokeniser's token q of each training scenario (and, with an
 `ego_film*` conditioning, its ego-motion features, `cvmdx_jax.ego_motion`). Loss: the
-v-loss with conditioning dropout (of the token only) to the null token Q. Optimiser:
+v-loss with conditioning dropout (of the token only) to the null token Q; with
+`diffusion.intent_conditioning` the features end in the one-hot true maneuver class and the
+loss adds the cross-entropy of that class under the U-Net's intent classifier on the ego
+features (its own parameters: the sum trains both at once). Optimiser:
 AdamW with linear warm-up and cosine decay to `min_lr`, global-norm clipping; an EMA of
 the weights (with the usual warm-up of the decay, min(decay, (1 + step) / (10 + step))) is
 what inference uses.
@@ -52,24 +55,38 @@ def make_init_fn(cfg: unet1d.UNetConfig, tx):
 
 def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
                  ema_decay: float, num_steps: int):
-  """The pure train step of the shared loop: v-loss, AdamW update, EMA."""
+  """The pure train step of the shared loop: v-loss (+ the intent classifier's
+  cross-entropy where `cfg.num_intents`, reported as "intent_ce"; `batch["label"]` then
+  holds the classes), AdamW update, EMA."""
   schedule = cosine_schedule(num_steps)
 
   def step_fn(state, batch, key):
     k_loss, k_drop = jax.random.split(key)
+    weight = batch["weight"] * batch.get("class_weight", 1.0)
 
     def loss_fn(params):
       ego = batch["ego"] if cfg.cond_dim else None
       model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop, ego)
-      return v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
-                    cond_drop_prob=cond_drop_prob,
-                    weight=batch["weight"] * batch.get("class_weight", 1.0))
+      loss = v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
+                    cond_drop_prob=cond_drop_prob, weight=weight)
+      if not cfg.num_intents:
+        return loss, {}
+      logits = unet1d.apply_intent(graphdef, params, ego[:, :cfg.intent_features])
+      ce = intent_cross_entropy(logits, batch["label"], weight)
+      return loss + ce, {"intent_ce": ce}
 
-    loss, grads = jax.value_and_grad(loss_fn)(state["params"])
-    return apply_gradients(state, grads, tx, ema_decay), {"loss": loss,
-                                                          "grad_norm": optax.tree.norm(grads)}
+    (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+    return apply_gradients(state, grads, tx, ema_decay), {
+        "loss": loss, "grad_norm": optax.tree.norm(grads), **aux}
 
   return step_fn
+
+
+def intent_cross_entropy(logits, label, weight):
+  """The weighted mean over examples of -log softmax(logits)[label]; logits (B, C),
+  label (B,) int, weight (B,) (0 for padding rows)."""
+  ce = optax.softmax_cross_entropy_with_integer_labels(logits, label)
+  return jnp.sum(weight * ce) / jnp.maximum(jnp.sum(weight), 1.0)
 
 
 def apply_gradients(state, grads, tx, ema_decay: float):
@@ -86,9 +103,11 @@ def apply_gradients(state, grads, tx, ema_decay: float):
 
 def training_data(config: DiffusionConfig, *, delta: bool = False
                   ) -> tuple[dict, int, str, dict]:
-  """(arrays {x0, q[, ego][, class_weight][, delta]}, Q, dataset id, tokens metadata) of
-  the training split; `class_weight` (M,) only where `diffusion.class_weights` is not all
-  1; `delta` (M,), the tokens' uncertainty, where asked for (distillation)."""
+  """(arrays {x0, q[, ego][, class_weight][, label][, delta]}, Q, dataset id, tokens
+  metadata) of the training split; `class_weight` (M,) only where `diffusion.class_weights`
+  is not all 1; `label` (M,) the maneuver classes of an intent conditioning (whose `ego`
+  then ends in their one-hot); `delta`
+  (M,), the tokens' uncertainty, where asked for (distillation)."""
   d = config.diffusion
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
@@ -104,6 +123,10 @@ def training_data(config: DiffusionConfig, *, delta: bool = False
   data["x0"] = np.asarray(targets.normalize_controls(controls, d.control_scale), np.float32)
   if d.weighted_classes:
     data["class_weight"] = np.asarray(d.class_weights, np.float32)[scenarios.label]
+  if d.intent_conditioning:
+    data["label"] = np.asarray(scenarios.label, np.int32)
+    data["ego"] = np.concatenate([data["ego"], np.eye(d.num_intents, dtype=np.float32)[
+        data["label"]]], axis=-1)
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 

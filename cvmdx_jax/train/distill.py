@@ -57,7 +57,8 @@ def stage_of(teacher: DiffusionConfig, guided_progressive: bool = False) -> str:
 
 def student_config(teacher: DiffusionConfig, config: DistillConfig) -> DiffusionConfig:
   """The student's run config: the teacher's with w as an input (guidance stage), the
-  distillation's seed and optimiser, and the distilled sampler at `config.steps`."""
+  distillation's seed and optimiser, and the distilled sampler at `config.steps` (an
+  intent classifier is the teacher's, copied)."""
   diffusion = dataclasses.replace(teacher.diffusion, guidance_input=True)
   sampling = dataclasses.replace(teacher.sampling, sampler="distilled", steps=config.steps,
                                  mode="paper")
