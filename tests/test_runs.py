@@ -60,10 +60,10 @@ def test_run_configs_become_the_typed_configs():
   assert demo.diffusion.control_scale == (4.0, 0.1) and demo.sampling.clip_x0 == 1.0
   assert demo.sampling.guidance.w_max_base == 0.5
   assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
-  assert demo.diffusion.class_weights == (2.0, 1.0, 1.0)  # chosen on val
+  assert demo.diffusion.class_weights == (1.0, 1.0, 1.0)  # chosen on val
   assert demo.model.cond_hidden == (256, 256)  # chosen on val
   assert demo.train.batch_size == 128  # chosen on val
-  assert demo.diffusion.weighted_classes
+  assert not demo.diffusion.weighted_classes
   # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
   assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
   assert demo.sampling.hypotheses.endpoint_weight == 0.5
