@@ -43,6 +43,11 @@ def weighted_mse(pred, target, weight=None):
     weight: (B,) per-example weights (0 for padding rows); None = all ones.
   """
   b = pred.shape[0]
-  per_example = jnp.mean(((pred - target) ** 2).reshape(b, -1), axis=-1)
-  weight = jnp.ones((b,), per_example.dtype) if weight is None else weight
+  return weighted_mean(jnp.mean(((pred - target) ** 2).reshape(b, -1), axis=-1), weight)
+
+
+def weighted_mean(per_example, weight=None):
+  """sum(weight * per_example) / max(sum(weight), 1): per_example, weight (B,) (0 for
+  padding rows); None = all ones."""
+  weight = jnp.ones_like(per_example) if weight is None else weight
   return jnp.sum(weight * per_example) / jnp.maximum(jnp.sum(weight), 1.0)

@@ -22,7 +22,7 @@ import optax
 
 from cvmdx_jax import ego_motion, targets
 from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.diffusion import cosine_schedule, v_loss
+from cvmdx_jax.diffusion import cosine_schedule, losses, v_loss
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
@@ -85,8 +85,8 @@ def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
 def intent_cross_entropy(logits, label, weight):
   """The weighted mean over examples of -log softmax(logits)[label]; logits (B, C),
   label (B,) int, weight (B,) (0 for padding rows)."""
-  ce = optax.softmax_cross_entropy_with_integer_labels(logits, label)
-  return jnp.sum(weight * ce) / jnp.maximum(jnp.sum(weight), 1.0)
+  return losses.weighted_mean(optax.softmax_cross_entropy_with_integer_labels(logits, label),
+                             weight)
 
 
 def apply_gradients(state, grads, tx, ema_decay: float):
@@ -106,8 +106,8 @@ def training_data(config: DiffusionConfig, *, delta: bool = False
   """(arrays {x0, q[, ego][, class_weight][, label][, delta]}, Q, dataset id, tokens
   metadata) of the training split; `class_weight` (M,) only where `diffusion.class_weights`
   is not all 1; `label` (M,) the maneuver classes of an intent conditioning (whose `ego`
-  then ends in their one-hot); `delta`
-  (M,), the tokens' uncertainty, where asked for (distillation)."""
+  then ends in their one-hot); `delta` (M,), the tokens' uncertainty, where asked for
+  (distillation)."""
   d = config.diffusion
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
