@@ -4,6 +4,8 @@
       --diffusion_dir=runs/demo/diffusion --data_dir=runs/demo/data --split=test \\
       --workdir=runs/demo/eval
 `--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.
+`--intent_prior=4,1,1` reweights an intent-conditioned denoiser's maneuver draws (keep lane,
+lcr, lcl) for data whose class shares differ from its train split's.
 `--baseline_dir=runs/demo/baseline` adds the rows of a trained multiple-choice baseline
 (experiments/train_baseline.py, on the same tokeniser).
 """
@@ -36,6 +38,9 @@ _SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
                               "dpmpp2m).")
 _STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.",
                               lower_bound=1)
+_PRIOR = flags.DEFINE_list("intent_prior", None, "Weights (keep lane, lcr, lcl) on an intent "
+                           "conditioning's class probabilities instead of the run's: the "
+                           "ratio of the evaluated data's class shares to the train split's.")
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir", "workdir"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir", "baseline_dir",
                "ddpm_diffusion_dir")
@@ -47,6 +52,12 @@ def main(argv):
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   overrides = {k: v for k, v in (("sampler", _SAMPLER.value), ("steps", _STEPS.value))
                if v is not None}
+  if _PRIOR.value is not None:
+    try:
+      overrides["intent_prior"] = sampling.SamplingConfig(
+          intent_prior=tuple(float(w) for w in _PRIOR.value)).intent_prior
+    except ValueError as error:
+      raise app.UsageError(f"--intent_prior={','.join(_PRIOR.value)}: {error}") from error
   report.run(tokenizer_dir=_TOKENIZER.value, diffusion_dir=_DIFFUSION.value,
              data_dir=_DATA.value, workdir=_WORKDIR.value, split=_SPLIT.value,
              seed=_SEED.value, max_scenarios=_MAX.value, ddpm_scenarios=_DDPM.value,

@@ -86,6 +86,9 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{NEW}} --seed=4294967296", "--seed=4294967296"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --sampler=euler", "--sampler=euler"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --steps=0", "--steps=0"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=1,2", "--intent_prior=1,2"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=0,1,1", "--intent_prior=0,1,1"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=a,1,1", "--intent_prior=a,1,1"),
     ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
     ("evaluate", f"{EVAL} --workdir={{NEW}} --baseline_dir={{T}}/nosuch", "--baseline_dir="),
     ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),

@@ -58,7 +58,7 @@ def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
 def test_run_configs_become_the_typed_configs():
   demo = DiffusionConfig.from_config(diffusion_config.get_config("demo"))
   assert demo.diffusion.control_scale == (4.0, 0.1) and demo.sampling.clip_x0 == 1.0
-  assert demo.sampling.guidance.w_max_base == 0.5
+  assert demo.sampling.guidance.w_max_base == 0.0 and demo.sampling.intent_prior == (2, 1, 1)
   assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
   assert demo.diffusion.class_weights == (1.0, 1.0, 1.0)  # chosen on val
   assert demo.model.cond_hidden == (256, 256)  # chosen on val

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants, ego_motion, targets, vmm
-from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, ConfigFieldError, check_ranges
 from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
                                  ddpm_sample, guidance_weight, guided_v_fn,
                                  official_ddim_sample)
@@ -50,6 +50,9 @@ class SamplingConfig:
       official sampler clips to [-1, 1]); None or 0 = no clipping.
     guidance: `GuidanceConfig`.
     hypotheses: `HypothesisConfig`.
+    intent_prior: weights (keep lane, lcr, lcl) that multiply an intent conditioning's
+      class probabilities before its draws, renormalised: the ratio of the class shares
+      where the model is used to those of its train split (all 1: as trained).
   """
 
   num_samples: int = 9
@@ -60,10 +63,15 @@ class SamplingConfig:
   clip_x0: float | None = 1.0
   guidance: GuidanceConfig = GuidanceConfig()
   hypotheses: HypothesisConfig = HypothesisConfig()
+  intent_prior: tuple[float, ...] = (1.0,) * constants.NUM_CLASSES
 
   def __post_init__(self):
+    object.__setattr__(self, "intent_prior", tuple(float(w) for w in self.intent_prior))
     check_ranges(self, {"num_samples": POSITIVE, "steps": POSITIVE, "eta": NON_NEGATIVE,
-                        "clip_x0": NON_NEGATIVE})
+                        "clip_x0": NON_NEGATIVE, "intent_prior": POSITIVE})
+    if len(self.intent_prior) != constants.NUM_CLASSES:
+      raise ConfigFieldError("intent_prior", self.intent_prior,
+                             f"needs {constants.NUM_CLASSES} weights (keep lane, lcr, lcl)")
     if self.clip_x0 == 0:  # the config's "0 = off"
       object.__setattr__(self, "clip_x0", None)
     if self.sampler not in SAMPLERS:
@@ -187,7 +195,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
   film = ego if ego_motion.uses_film(conditioning) else None
   if denoiser_config.intent_conditioning:
     keys, intent_keys = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
-    logits = apply_intent(graphdef, params, ego)
+    logits = apply_intent(graphdef, params, ego) + jnp.log(jnp.asarray(config.intent_prior))
     intents = jax.vmap(draw_intents, (0, 0, None))(logits, intent_keys, config.num_samples)
     film = jnp.concatenate([jnp.broadcast_to(ego[:, None], intents.shape + ego.shape[-1:]),
                             jax.nn.one_hot(intents, logits.shape[-1], dtype=ego.dtype)], -1)

@@ -144,6 +144,32 @@ def test_predict_batch_conditions_each_sample_on_a_class_drawn_from_the_classifi
                                want, atol=1e-5)
 
 
+def test_the_intent_prior_reweights_the_class_draws():
+  g, p = unet1d.init_unet(INTENT, jax.random.key(0))
+  p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
+  # a classifier with equal logits for every input: p = (1/3, 1/3, 1/3)
+  p["intent_mlp"][2] = jax.tree.map(jnp.zeros_like, p["intent_mlp"][2])
+  # keep-lane weight 2: (2, 1, 1) / 4, so 4 systematic draws are exactly kl, kl, lcr, lcl
+  config = sampling.SamplingConfig(num_samples=4, steps=2, intent_prior=(2, 1, 1))
+  denoiser = dataclasses.replace(_demo(intent_conditioning=True).diffusion,
+                                 conditioning="ego_film")
+  ego = jax.random.normal(jax.random.key(4), (1, 7))
+  keys = jax.random.split(jax.random.key(5), 1)
+  kw = dict(schedule=cosine_schedule(1000), null_token=5, config=config)
+  got = sampling.predict_batch(g, p, jnp.array([1]), jnp.zeros(1), jnp.full(1, 30.0),
+                               jnp.zeros(1), keys, ego, denoiser_config=denoiser, **kw)
+  rows = jnp.concatenate([jnp.tile(ego, (4, 1)), jnp.eye(3)[jnp.array([0, 0, 1, 2])]], -1)
+  want = sampling.sample_controls(g, p, jnp.array(1), 0.0, jax.random.split(keys[0])[0],
+                                  ego=rows, **kw)
+  np.testing.assert_allclose(got.controls[0] / jnp.asarray(denoiser.control_scale), want,
+                             atol=1e-5)
+  with pytest.raises(ConfigFieldError, match="3 weights") as error:
+    sampling.SamplingConfig(intent_prior=(2, 1))
+  assert error.value.field == "intent_prior"
+  with pytest.raises(ConfigFieldError):
+    sampling.SamplingConfig(intent_prior=(0, 1, 1))
+
+
 def test_configs_check_and_fingerprint_the_intent_conditioning():
   off, on = _demo(intent_conditioning=False), _demo(intent_conditioning=True)
   assert (on.model.num_intents, on.model.intent_features) == (3, 41)
