@@ -46,6 +46,12 @@ class GuidanceConfig:
       if getattr(self, name) not in FORMS:
         raise ValueError(f"guidance.{name} must be one of {FORMS}, got {getattr(self, name)!r}")
 
+  @property
+  def off(self) -> bool:
+    """w(t, delta) = 0 everywhere: the guided v is one branch (the conditional in the
+    "paper" form, the unconditional in the "official" one)."""
+    return self.w_min == 0 and self.w_max_base == 0
+
 
 def guidance_weight(t, delta, num_steps: int, config: GuidanceConfig = GuidanceConfig()):
   """w(t, delta); t (integer timesteps) and delta broadcast together."""
@@ -103,6 +109,9 @@ def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
   weights summing to 1 and eps = sigma x_t + alpha v is affine in v, so the
   guided v is the same combination of v_cond and v_uncond: returning it is exact
   and avoids dividing by alpha_t -> 0 at t near T.
+  Where `config.off` (w = 0 everywhere) only the branch that the combination keeps runs:
+  half the evaluations, the same v up to the rounding of a B-row call instead of a 2B-row
+  one (~6e-7 on the demo U-Net).
 
   Args:
     model_fn: (x_t (B, ...), t (B,), cond (B,)) -> v (B, ...).
@@ -112,6 +121,9 @@ def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
     schedule: a `Schedule` (for T).
     config: `GuidanceConfig`.
   """
+  if config.off:
+    kept = jnp.asarray(cond) if config.form == "paper" else jnp.full_like(cond, null_cond)
+    return lambda x_t, t: model_fn(x_t, t, kept)
   branches = cond_uncond_v_fn(model_fn, cond, null_cond)
   num_steps = schedule.num_steps
 

@@ -66,10 +66,21 @@ def test_guided_v_equals_eps_space_combination(form):
   np.testing.assert_allclose(diffusion.eps_from_v(x_t, v, abar), eps, atol=1e-4)
 
 
-def test_zero_weight_is_conditional_prediction():
+@pytest.mark.parametrize("form,kept", [("paper", "cond"), ("official", "null")])
+def test_zero_weight_runs_the_one_branch_the_combination_keeps(form, kept):
+  """w = 0 everywhere: "paper" (1 + 0) c - 0 u = c, "official" u + 0 (c - u) = u, from one
+  model call of B rows, equal bit for bit to the combination of both branches."""
   schedule = diffusion.cosine_schedule(T)
-  cfg = GuidanceConfig(w_min=0.0, w_max_base=0.0)
+  cfg = GuidanceConfig(w_min=0.0, w_max_base=0.0, form=form)
+  assert cfg.off and not GuidanceConfig(w_min=0.0).off
   x_t = jax.random.normal(jax.random.key(1), (3, 125, 2))
-  t, cond = jnp.array([10, 500, 990]), jnp.array([0, 1, 2])
-  v = diffusion.guided_v_fn(_toy_model, cond, 5, jnp.zeros(3), schedule, cfg)(x_t, t)
-  np.testing.assert_allclose(v, _toy_model(x_t, t, cond), atol=1e-6)
+  t, cond, null = jnp.array([10, 500, 990]), jnp.array([0, 1, 2]), 5
+  rows = []
+  model = lambda x, tt, c: rows.append(len(x)) or _toy_model(x, tt, c)
+  v = diffusion.guided_v_fn(model, cond, null, jnp.zeros(3), schedule, cfg)(x_t, t)
+  assert rows == [3]
+  want = _toy_model(x_t, t, cond if kept == "cond" else jnp.full(3, null))
+  np.testing.assert_array_equal(v, want)
+  pair = diffusion.combine_eps(_toy_model(x_t, t, cond), _toy_model(x_t, t, jnp.full(3, null)),
+                               jnp.zeros(3), form)
+  np.testing.assert_array_equal(v, pair)
