@@ -190,6 +190,10 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
     `Prediction`.
   """
   conditioning = denoiser_config.conditioning
+  if not denoiser_config.intent_conditioning and any(w != 1 for w in config.intent_prior):
+    raise ConfigFieldError("sampling.intent_prior", config.intent_prior,
+                           "this denoiser draws no maneuver classes (it was trained without "
+                           "diffusion.intent_conditioning): leave it at 1, 1, 1")
   if conditioning != "token" and ego is None:
     raise ValueError(f"predict_batch: conditioning {conditioning!r} needs ego features")
   film = ego if ego_motion.uses_film(conditioning) else None

@@ -163,6 +163,10 @@ def test_the_intent_prior_reweights_the_class_draws():
                                   ego=rows, **kw)
   np.testing.assert_allclose(got.controls[0] / jnp.asarray(denoiser.control_scale), want,
                              atol=1e-5)
+  without = dataclasses.replace(denoiser, intent_conditioning=False)
+  with pytest.raises(ConfigFieldError, match="no maneuver classes"):
+    sampling.predict_batch(g, p, jnp.array([1]), jnp.zeros(1), jnp.full(1, 30.0), jnp.zeros(1),
+                           keys, ego, denoiser_config=without, **kw)
   with pytest.raises(ConfigFieldError, match="3 weights") as error:
     sampling.SamplingConfig(intent_prior=(2, 1))
   assert error.value.field == "intent_prior"
