@@ -13,7 +13,10 @@ logging is silenced while orbax runs (`_quiet_orbax`), not for the whole process
 save its warnings and errors are held back, re-logged if the save succeeds and dropped if it
 fails (the exception, passed on, says what went wrong). A failed save removes orbax's
 temporary directories (`*.orbax-checkpoint-tmp*`), and a writable `Checkpoints` removes any
-left by a killed process when it opens its root (callers hold the workdir lock by then).
+left by a killed process when it opens its root (callers hold the workdir lock by then),
+together with a committed step that has no checksums.json yet: a kill between orbax's commit
+and the manifest. The run then resumes from the step before, never from unverified files; a
+read-only `Checkpoints` lists such a step, and `load` refuses it naming the missing manifest.
 """
 
 import contextlib
@@ -131,12 +134,15 @@ def _remove_temporaries(root: Path) -> None:
       shutil.rmtree(p, ignore_errors=True)
 
 
-def _complete_steps(root: Path) -> tuple[list[int], list[Path]]:
-  """(sorted steps with a commit marker, step directories without one)."""
+def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[int], list[Path]]:
+  """(sorted steps with a commit marker, and with `with_manifest` also a checksums.json;
+  the other step directories)."""
   done, partial = [], []
   for p in root.iterdir() if root.is_dir() else ():
     if p.is_dir() and p.name.isdigit():
-      (done if (p / _COMMIT_MARKER).is_file() else partial).append(p)
+      complete = (p / _COMMIT_MARKER).is_file() and (
+          not with_manifest or (p / checksums.MANIFEST).is_file())
+      (done if complete else partial).append(p)
   return sorted(int(p.name) for p in done), partial
 
 
@@ -150,7 +156,7 @@ class Checkpoints:
   def __init__(self, root: str | os.PathLike, *, keep: int | None = None,
                writable: bool = True):
     self.root = Path(root).absolute()  # orbax requires absolute paths
-    self._steps, partial = _complete_steps(self.root)
+    self._steps, partial = _complete_steps(self.root, with_manifest=writable)
     self._ckptr, self._failed = None, False
     if not writable:
       return

@@ -9,7 +9,7 @@ import optax
 import pytest
 
 from cvmdx_jax import sharding
-from cvmdx_jax.storage import checkpointing, identity
+from cvmdx_jax.storage import checkpointing, checksums, identity
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 
 
@@ -161,3 +161,20 @@ def test_opening_for_writing_removes_stale_temporary_directories(tmp_path):
   with checkpointing.Checkpoints(tmp_path) as ckpts:
     assert ckpts.latest_step is None
   assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.orbax"]
+
+
+def test_a_kill_between_commit_and_manifest_resumes_from_the_step_before(tmp_path):
+  """The manifest is written after orbax commits a step: a step with the commit marker but no
+  checksums.json was cut short. Reading refuses it; opening to write drops it."""
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    ckpts.save(1, _state(), {"step": 1})
+    ckpts.save(2, _state(), {"step": 2})
+  (tmp_path / "2" / checksums.MANIFEST).unlink()
+  assert (tmp_path / "2" / "commit_success.txt").is_file()  # orbax had committed it
+  with pytest.raises(CheckpointMismatchError, match="no checksums.json"):
+    checkpointing.load_latest(tmp_path, _abstract(_state()))
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    assert ckpts.latest_step == 1
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
+  _, meta = checkpointing.load_latest(tmp_path, _abstract(_state()))
+  assert meta == {"step": 1}
