@@ -4,6 +4,9 @@ Sections (`--sections`, in this order):
   samplers: DDPM (T = 1000) vs DDIM (S = 10) wall time for the same batch (9
     guided samples of one scenario, i.e. 18 sequences per U-Net call) with the
     default (reference-size) U-Net; the ideal ratio is 100x.
+  guidance: DDIM(10) with the guided pair (2N sequences per call) vs with the guidance
+    off (w = 0: the conditional branch alone, N per call), same U-Net and batch; the
+    ideal ratio is 2x.
   hypotheses: batched JAX `fit_hypotheses` (jitted, warmed up) vs a plain
     scikit-learn per-scenario loop (`sklearn_bic`) on sets of sampled
     trajectories with 1-3 known modes (`tests/multimodal/synthetic.py`): wall times,
@@ -39,7 +42,7 @@ from tests.multimodal import synthetic
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 
-_SECTIONS = flags.DEFINE_list("sections", ["samplers", "hypotheses", "recovery"],
+_SECTIONS = flags.DEFINE_list("sections", ["samplers", "guidance", "hypotheses", "recovery"],
                               "Sections to run.")
 _NUM_SCENARIOS = flags.DEFINE_integer("num_scenarios", 1000, "Scenarios per benchmark.",
                                       lower_bound=1)
@@ -58,15 +61,20 @@ RECOVERY_GRID = (
 )
 
 
+def _median_s(fn, repeats: int) -> float:
+  """Median wall time (s) of `fn(key)` over `repeats` calls after a warm-up call."""
+  fn(jax.random.key(0)).block_until_ready()
+  runs = []
+  for i in range(repeats):
+    start = time.perf_counter()
+    fn(jax.random.key(i + 1)).block_until_ready()
+    runs.append(time.perf_counter() - start)
+  return float(np.median(runs))
+
+
 def _time_jax(trajectories, config, repeats=5):
   """Median wall time (s) of the compiled `fit_hypotheses` after a warm-up call."""
-  fit_hypotheses(trajectories, config=config).num_modes.block_until_ready()
-  times = []
-  for _ in range(repeats):
-    start = time.perf_counter()
-    fit_hypotheses(trajectories, config=config).num_modes.block_until_ready()
-    times.append(time.perf_counter() - start)
-  return float(np.median(times))
+  return _median_s(lambda _: fit_hypotheses(trajectories, config=config).num_modes, repeats)
 
 
 def sklearn_bic(trajectories, config, tol=1e-3):
@@ -145,30 +153,43 @@ def recovery_table(num_sets=1000, seed=1, grid=RECOVERY_GRID):
   return rows
 
 
-def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
-  """DDPM(1000) vs DDIM(10) with the default U-Net, guided, for one batch."""
+def _default_v_fn(num_samples: int, seed: int, guidance=diffusion.GuidanceConfig()):
+  """(guided v_fn of the default U-Net for `num_samples` samples of one scenario, params)."""
   config = unet1d.UNetConfig()
   graphdef, params = unet1d.init_unet(config, jax.random.key(seed))
-  schedule = diffusion.cosine_schedule()
   model = lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)
-  v_fn = diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), config.null_token,
-                               jnp.full(num_samples, 5.0), schedule)
-  shape = (num_samples, 125, 2)
-  ddim = jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule, steps=10))
-  ddpm = jax.jit(lambda k: diffusion.ddpm_sample(v_fn, k, shape, schedule))
-  times = {}
-  for name, fn, repeats in (("ddim", ddim, 5), ("ddpm", ddpm, 1)):
-    fn(jax.random.key(0)).block_until_ready()
-    runs = []
-    for i in range(repeats):
-      start = time.perf_counter()
-      fn(jax.random.key(i + 1)).block_until_ready()
-      runs.append(time.perf_counter() - start)
-    times[name] = float(np.median(runs))  # DDIM: median of 5 calls
+  return diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), config.null_token,
+                               jnp.full(num_samples, 5.0), diffusion.cosine_schedule(),
+                               guidance), params
+
+
+def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
+  """DDPM(1000) vs DDIM(10) with the default U-Net, guided, for one batch."""
+  v_fn, params = _default_v_fn(num_samples, seed)
+  schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
+  times = {  # DDIM: median of 5 calls
+      "ddim": _median_s(jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule,
+                                                                steps=10)), 5),
+      "ddpm": _median_s(jax.jit(lambda k: diffusion.ddpm_sample(v_fn, k, shape, schedule)), 1)}
   ratio = times["ddpm"] / times["ddim"]
   print(f"samplers: {unet1d.count_params(params) / 1e6:.1f} M-parameter U-Net, {num_samples} "
         f"guided samples: DDPM(1000) {times['ddpm']:.2f} s, DDIM(10) {times['ddim']:.3f} s, "
         f"ratio {ratio:.1f}x (ideal 100x)")
+  return {**times, "ratio": ratio}
+
+
+def benchmark_guidance(num_samples: int = 9, seed: int = 0) -> dict:
+  """DDIM(10) with the guided pair vs with the guidance off (one branch), default U-Net."""
+  schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
+  times = {}
+  for name, guidance in (("pair", diffusion.GuidanceConfig()),
+                         ("off", diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0))):
+    v_fn, _ = _default_v_fn(num_samples, seed, guidance)
+    times[name] = _median_s(jax.jit(lambda k, v_fn=v_fn: diffusion.ddim_sample(
+        v_fn, k, shape, schedule, steps=10)), 5)
+  ratio = times["pair"] / times["off"]
+  print(f"guidance: DDIM(10), {num_samples} samples: guided pair {times['pair']:.3f} s, "
+        f"guidance off {times['off']:.3f} s, ratio {ratio:.2f}x (ideal 2x)")
   return {**times, "ratio": ratio}
 
 
@@ -177,6 +198,7 @@ def main(argv):
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   sections = {
       "samplers": lambda: benchmark_samplers(_NUM_SAMPLES.value, _SEED.value),
+      "guidance": lambda: benchmark_guidance(_NUM_SAMPLES.value, _SEED.value),
       "hypotheses": lambda: benchmark_hypotheses(
           _NUM_SCENARIOS.value, _NUM_SAMPLES.value, _SEED.value),
       "recovery": lambda: recovery_table(_NUM_SCENARIOS.value, _SEED.value + 1),
