@@ -153,19 +153,24 @@ def recovery_table(num_sets=1000, seed=1, grid=RECOVERY_GRID):
   return rows
 
 
-def _default_v_fn(num_samples: int, seed: int, guidance=diffusion.GuidanceConfig()):
-  """(guided v_fn of the default U-Net for `num_samples` samples of one scenario, params)."""
+def _default_unet(seed: int):
+  """(model_fn (x_t, t, q) -> v of the default U-Net, its null token, its params)."""
   config = unet1d.UNetConfig()
   graphdef, params = unet1d.init_unet(config, jax.random.key(seed))
-  model = lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)
-  return diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), config.null_token,
-                               jnp.full(num_samples, 5.0), diffusion.cosine_schedule(),
-                               guidance), params
+  return (lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)), config.null_token, \
+      params
+
+
+def _guided(model, null_token: int, num_samples: int, guidance=diffusion.GuidanceConfig()):
+  """The guided v_fn of `model` for `num_samples` samples of one scenario (token 0, delta 5)."""
+  return diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), null_token,
+                               jnp.full(num_samples, 5.0), diffusion.cosine_schedule(), guidance)
 
 
 def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
   """DDPM(1000) vs DDIM(10) with the default U-Net, guided, for one batch."""
-  v_fn, params = _default_v_fn(num_samples, seed)
+  model, null_token, params = _default_unet(seed)
+  v_fn = _guided(model, null_token, num_samples)
   schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
   times = {  # DDIM: median of 5 calls
       "ddim": _median_s(jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule,
@@ -180,11 +185,12 @@ def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
 
 def benchmark_guidance(num_samples: int = 9, seed: int = 0) -> dict:
   """DDIM(10) with the guided pair vs with the guidance off (one branch), default U-Net."""
+  model, null_token, _ = _default_unet(seed)
   schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
   times = {}
   for name, guidance in (("pair", diffusion.GuidanceConfig()),
                          ("off", diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0))):
-    v_fn, _ = _default_v_fn(num_samples, seed, guidance)
+    v_fn = _guided(model, null_token, num_samples, guidance)
     times[name] = _median_s(jax.jit(lambda k, v_fn=v_fn: diffusion.ddim_sample(
         v_fn, k, shape, schedule, steps=10)), 5)
   ratio = times["pair"] / times["off"]
