@@ -15,7 +15,9 @@ Splits, all by recording (a recording's scenarios are in one split only):
   (`cvmdx_jax.data.sumo_plan`).
 - highd: `splits` (recording ids): test = ids ending in 3, 6 or 9 (18 of 60), val = ids
   ending in 0 (6 of 60), train = the other 36; test_ood and val_ood empty (not built)
-  unless given.
+  unless given. A split given no ids is not built: `--config.splits.train=()
+  --config.splits.val=() --config.splits.test=(1,2)` makes a test-only dataset of a road
+  never seen, for a trained model (docs/usage.md).
 - cvmd_mat: `mat_dir/train` and `mat_dir/test`; val = `mat_val_fraction` of each class's
   train files, drawn with `seed`.
 
@@ -49,7 +51,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.highd_dir = ""  # directory with XX_tracks.csv etc. (source=highd)
   c.mat_dir = ""  # directory with train/ and test/ class folders (source=cvmd_mat)
   c.mat_val_fraction = 0.15  # share of each class's train files moved to val (cvmd_mat)
-  # Recording ids per split (source=highd); an empty test_ood or val_ood is not built.
+  # Recording ids per split (source=highd); a split given no ids is not built.
   c.splits = ml_collections.ConfigDict()
   c.splits.train = HIGHD_TRAIN
   c.splits.val = HIGHD_VAL

@@ -559,3 +559,26 @@ def test_intent_conditioned_run_trains_distills_and_predicts(runs, tmp_path):
   out = student(scenarios, seed=1)
   assert out.prediction.trajectories.shape == (4, 9, 125, 2)
   assert np.isfinite(out.prediction.trajectories).all()
+
+
+def test_a_road_never_seen_as_a_test_only_highd_dataset(runs, tmp_path):
+  """The held-out road's recording read as raw highD into a test-only dataset (docs/usage.md,
+  "A trained model on a road it never saw") holds the same scenarios as the pipeline's
+  test_ood split, and the trained runs score it like that split."""
+  from cvmdx_jax.data import sumo_plan
+  ood_ids = sumo_plan.split_ids(dataset_config.get_config("tiny").sumo)["test_ood"]
+  config = dataset_config.get_config("tiny")
+  config.source, config.highd_dir = "highd", str(runs / "data" / "recordings")
+  config.splits.train, config.splits.val, config.splits.test = (), (), tuple(ood_ids)
+  road = dataset.build(config, tmp_path / "road")
+  assert list(road) == ["test"]
+  ood = dataset.load_split(runs / "data", "test_ood")
+  for field in ("xi", "mask", "future", "label", "recording_id", "frame"):
+    np.testing.assert_array_equal(getattr(road["test"], field), getattr(ood, field))
+  kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
+            max_scenarios=12, ddpm_scenarios=0)
+  on_road = report.run(**kw, data_dir=tmp_path / "road", split="test", workdir=tmp_path / "a")
+  as_ood = report.run(**kw, data_dir=runs / "data", split="test_ood", workdir=tmp_path / "b")
+  for method in ("cv", "cvmdx_mean", "cvmdx_best_of_k"):
+    assert on_road[method]["all"]["ade"] == as_ood[method]["all"]["ade"]
+    assert on_road[method]["all"]["num_scenarios"] == 12

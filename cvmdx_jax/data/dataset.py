@@ -3,8 +3,9 @@
 Sources (`config.source`): 'sumo' (simulate the recordings of `config.sumo.recordings` into
 `data_dir/recordings`, highD format, then read them like highD), 'highd' (`config.highd_dir`),
 'cvmd_mat' (`config.mat_dir/{train,test}`). Splits (`SPLITS`), disjoint by recording: sumo
-by `sumo_plan.split_ids`, highd by the recording ids of `config.splits` (train, val and test
-required, an empty test_ood or val_ood skipped), cvmd_mat: test = `test/`, val = a seeded,
+by `sumo_plan.split_ids`, highd by the recording ids of `config.splits` (a split given no ids
+is not built, so that recordings of a road never seen can make a test-only dataset for a
+trained model; at least one split must hold a recording), cvmd_mat: test = `test/`, val = a seeded,
 per-class `config.mat_val_fraction` of the `train/` files, train = the rest.
 The cache lives in `data_dir/cache` (see `cache`); it is reused only when it was made with the
 same settings from source files of the same content (names relative to the source directory,
@@ -25,7 +26,7 @@ from cvmdx_jax.data.errors import DataError
 
 SOURCES = ("sumo", "highd", "cvmd_mat")
 SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood, val_ood
-_REQUIRED = ("train", "val", "test")
+_MAT_SPLITS = ("train", "val", "test")  # what a cvmd_mat source builds
 # Ranges of the numeric fields of configs/dataset.py per section (a tuple: each element).
 CONFIG_RANGES = {
     "": {"seed": SEED, "mat_val_fraction": BELOW_ONE},
@@ -84,8 +85,9 @@ def _sumo_recordings(config, data_dir: Path) -> Path:
 
 
 def _split_ids(config, available, where) -> dict:
-  """{split: recording ids present}; DataError for a required split without any or for a
-  recording in two splits."""
+  """{split: recording ids present}; DataError for a split whose ids are all missing, for
+  no split at all, or for a recording in two splits (SUMO always has train, val and test:
+  `sumo.recordings` > 0)."""
   wanted = (sumo_plan.split_ids(config.sumo) if config.source == "sumo"
             else {name: list(config.splits.get(name, ())) for name in SPLITS})
   column = "sumo.recordings" if config.source == "sumo" else "splits"
@@ -97,11 +99,14 @@ def _split_ids(config, available, where) -> dict:
                         column=f"{column}.{name}")
       seen[i] = name
     ids = [i for i in wanted[name] if i in available]
-    if not ids and (wanted[name] or name in _REQUIRED):
+    if not ids and wanted[name]:
       raise DataError(where, f"empty selection: none of the {name} recordings "
                       f"{wanted[name]} is there (have {available})", column=f"{column}.{name}")
     if ids:
       out[name] = ids
+  if not out:
+    raise DataError(where, f"empty selection: no split has a recording (have {available})",
+                    column=column)
   return out
 
 
@@ -149,7 +154,7 @@ def build(config, data_dir) -> dict:
   if config.source == "cvmd_mat":
     mat_dir = root = Path(config.mat_dir)
     files = list(mat_dir.glob("*/class*/*.mat"))
-    names = _REQUIRED
+    names = _MAT_SPLITS
     read = lambda: _read_mat(config, mat_dir)
   else:
     rec_dir = root = (_sumo_recordings(config, data_dir) if config.source == "sumo"

@@ -32,12 +32,37 @@ def test_highd_recording_in_two_splits_is_refused(highd_config, tmp_path):
 
 
 @pytest.mark.parametrize("split", ["train", "val", "test"])
-def test_highd_train_val_and_test_are_required(highd_config, tmp_path, split):
+def test_highd_split_whose_recordings_are_all_missing_is_refused(highd_config, tmp_path, split):
   config = highd_config()
-  config.splits[split] = ()
+  config.splits[split] = (7,)  # no recording 7 in highd_dir
   with pytest.raises(DataError, match=f"empty selection: none of the {split} recordings") as info:
     dataset.build(config, tmp_path / "out")
   assert info.value.column == f"splits.{split}"
+  assert not (tmp_path / "out" / "cache").exists()
+
+
+def test_highd_test_only_dataset_for_a_trained_model(highd_config, tmp_path):
+  """Recordings of a road never seen, all in test: only test is built; a trainer asking for
+  train gets a DataError naming the splits there."""
+  config = highd_config()
+  config.splits.train, config.splits.val, config.splits.test = (), (), (1, 2, 3)
+  splits = dataset.build(config, tmp_path / "out")
+  assert list(splits) == ["test"]
+  assert sorted(set(splits["test"].recording_id.tolist())) == [1, 2, 3]
+  assert dataset.split_names(tmp_path / "out") == ["test"]
+  np.testing.assert_array_equal(dataset.load_split(tmp_path / "out", "test").label,
+                                splits["test"].label)
+  with pytest.raises(DataError, match=r"unknown split 'train', available: \['test'\]"):
+    dataset.load_split(tmp_path / "out", "train")
+
+
+def test_highd_no_split_at_all_is_refused(highd_config, tmp_path):
+  config = highd_config()
+  config.splits.train, config.splits.val, config.splits.test = (), (), ()
+  with pytest.raises(DataError, match="empty selection: no split has a recording") as info:
+    dataset.build(config, tmp_path / "out")
+  assert info.value.column == "splits"
+  assert not (tmp_path / "out" / "cache").exists()
 
 
 def test_highd_test_ood_and_val_ood_are_built_when_given(highd_config, highd_dir, tmp_path):
