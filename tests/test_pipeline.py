@@ -28,7 +28,7 @@ from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.runs.config import (BaselineConfig, DiffusionConfig, DistillConfig,
                                    TokenizerRunConfig)
-from cvmdx_jax.storage import atomic, checkpointing
+from cvmdx_jax.storage import atomic, checkpointing, checksums
 from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
@@ -103,6 +103,24 @@ def test_report_has_every_method_subset_and_figure(runs):
     assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
   table = (runs / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
+  # predictions.npz: the evaluated scenarios row by row, their errors recomputed from the
+  # stored mean and hypotheses against the split's own futures
+  arrays = checksums.read_npz(runs / "eval" / "predictions.npz")
+  split = dataset.load_split(runs / "data", "test")
+  rows = balanced_indices(split.label, 0, 30)
+  for field in ("recording_id", "track_id", "frame", "label"):
+    np.testing.assert_array_equal(arrays[field], getattr(split, field)[rows])
+  future = split.future[rows]
+  assert arrays["mean"].shape == (30, 125, 2) and arrays["hypotheses"].shape[:2] == (30, 3)
+  np.testing.assert_allclose(arrays["probs"].sum(-1), 1.0, atol=1e-5)
+  ade = np.linalg.norm(arrays["mean"] - future, axis=-1).mean(-1)
+  np.testing.assert_allclose(arrays["cvmdx_mean_ade"], ade, rtol=1e-5)
+  hyp_fde = np.linalg.norm(arrays["hypotheses"][:, :, -1] - future[:, None, -1], axis=-1)
+  np.testing.assert_allclose(arrays["cvmdx_best_of_k_fde"],
+                             np.where(arrays["probs"] > 0, hyp_fde, np.inf).min(-1), rtol=1e-5)
+  for method in ("cvmdx_mean", "cvmdx_best_of_k", "cv", "ca"):
+    for metric in ("ade", "fde"):
+      assert np.isclose(arrays[f"{method}_{metric}"].mean(), saved[method]["all"][metric])
   assert "out of distribution" in table and "Spearman" in table
   assert "energy score of N [m]" in table and "ECE of p(c)" in table
 

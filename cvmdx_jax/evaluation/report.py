@@ -5,8 +5,10 @@ methods `scoring.METHODS` (and, given a trained baseline, `learned_baseline.METH
 subsets all / kl / lcr / lcl, metrics in `scoring`'s
 docstring, plus `_meta`), `results<suffix>.md` (the tables),
 `predictions_<class><suffix>.png` (Fig. 1 style, for the classes present),
-`kl_vs_usage<suffix>.png` (Fig. 3 style) and `reliability<suffix>.png` (calibration of
-the hypothesis probabilities). Every input is checked before anything is written,
+`kl_vs_usage<suffix>.png` (Fig. 3 style), `reliability<suffix>.png` (calibration of
+the hypothesis probabilities) and `predictions<suffix>.npz` (`prediction_arrays`: each
+scenario's provenance, mean, hypotheses with probabilities and per-method errors, for
+paired comparisons with baselines of one's own). Every input is checked before anything is written,
 non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before anything
 is written, and the report is written as a whole or not at all: every file is rendered in
 memory, then written as one group (`checksums.write_all`), so a failure (a full disk)
@@ -42,6 +44,22 @@ def _sampling_meta(predictor: Predictor) -> dict:
       out.update(control_scale=targets.control_scale, conditioning=targets.conditioning,
                  residual_decay_s=targets.residual_decay_s)
   return out
+
+
+def prediction_arrays(scenarios, out, errors: dict) -> dict:
+  """The arrays of `predictions<suffix>.npz`, one row per evaluated scenario (M):
+  `recording_id`, `track_id`, `frame`, `label` (M,) int (the scenario's provenance, as in
+  the dataset); `mean` (M, 125, 2) m; `hypotheses` (M, K, 125, 2) m and `probs` (M, K) (0 =
+  unused slot); `q`, `delta`, `out_of_distribution` (M,); and `<method>_ade`,
+  `<method>_fde` (M,) m for every method of `errors` (per-scenario errors on these M
+  scenarios; best of K: minADE_K / minFDE_K)."""
+  arrays = {name: np.asarray(getattr(scenarios, name))
+            for name in ("recording_id", "track_id", "frame", "label")}
+  arrays.update(mean=out.mean, hypotheses=out.hypotheses.means, probs=out.hypotheses.probs,
+                q=out.q, delta=out.delta, out_of_distribution=out.out_of_distribution)
+  for method, per in errors.items():
+    arrays.update({f"{method}_{metric}": per[metric] for metric in ("ade", "fde")})
+  return {name: np.asarray(value) for name, value in arrays.items()}
 
 
 @locking.holds("workdir")
@@ -154,7 +172,9 @@ def run(*, tokenizer_dir, diffusion_dir, data_dir, workdir, split: str = "test",
               "share": float(out.out_of_distribution.mean())}}
   checksums.write_all({  # metrics.json first: renamed last
       workdir / f"metrics{suffix}.json": atomic.json_text({**results, "_meta": meta}).encode(),
-      workdir / f"results{suffix}.md": scoring.markdown_tables(results).encode(), **pngs})
+      workdir / f"results{suffix}.md": scoring.markdown_tables(results).encode(),
+      workdir / f"predictions{suffix}.npz": checksums.npz_bytes(
+          **prediction_arrays(scenarios, out, errors)), **pngs})
   for path in stale:
     path.unlink(missing_ok=True)
   return results

@@ -138,11 +138,16 @@ def read_json(path: str | os.PathLike) -> Any:
     raise CorruptRunError(f"{path}: not valid JSON ({e})") from e
 
 
-def write_npz(path: str | os.PathLike, **arrays) -> None:
-  """Arrays as an uncompressed .npz (`np.savez`), checksummed."""
+def npz_bytes(**arrays) -> bytes:
+  """Arrays as the bytes of an uncompressed .npz (`np.savez`), for `write_all`."""
   buffer = io.BytesIO()
   np.savez(buffer, **arrays)
-  write_bytes(path, buffer.getvalue())
+  return buffer.getvalue()
+
+
+def write_npz(path: str | os.PathLike, **arrays) -> None:
+  """Arrays as an uncompressed .npz (`np.savez`), checksummed."""
+  write_bytes(path, npz_bytes(**arrays))
 
 
 def read_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
