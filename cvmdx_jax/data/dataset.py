@@ -100,8 +100,11 @@ def _split_ids(config, available, where) -> dict:
       seen[i] = name
     ids = [i for i in wanted[name] if i in available]
     if not ids and wanted[name]:
+      hint = ("" if config.source == "sumo" else
+              f"; to build without {name}, give it no ids: --config.splits.{name}=()")
       raise DataError(where, f"empty selection: none of the {name} recordings "
-                      f"{wanted[name]} is there (have {available})", column=f"{column}.{name}")
+                      f"{wanted[name]} is there (have {available}){hint}",
+                      column=f"{column}.{name}")
     if ids:
       out[name] = ids
   if not out:

@@ -38,6 +38,7 @@ def test_highd_split_whose_recordings_are_all_missing_is_refused(highd_config, t
   with pytest.raises(DataError, match=f"empty selection: none of the {split} recordings") as info:
     dataset.build(config, tmp_path / "out")
   assert info.value.column == f"splits.{split}"
+  assert f"give it no ids: --config.splits.{split}=()" in str(info.value)
   assert not (tmp_path / "out" / "cache").exists()
 
 
