@@ -12,7 +12,10 @@ Splits, all by recording (a recording's scenarios are in one split only):
   (`sumo.val_held_out`: 3 lanes of 3.5 m, 90 km/h) to choose settings for roads never seen
   without reading test_ood. Recordings are numbered in that order (`sumo.recordings`); each
   one's road, traffic and drivers are in `<data_dir>/recordings/plans.json`
-  (`cvmdx_jax.data.sumo_plan`).
+  (`cvmdx_jax.data.sumo_plan`). A split of 0 recordings is not built:
+  `--config.sumo.recordings.train=0` (and val, test, val_ood) with
+  `--config.sumo.held_out.lanes=2 ...` makes a test_ood-only dataset of a road of your
+  own, for a trained model (docs/usage.md).
 - highd: `splits` (recording ids): test = ids ending in 3, 6 or 9 (18 of 60), val = ids
   ending in 0 (6 of 60), train = the other 36; test_ood and val_ood empty (not built)
   unless given. A split given no ids is not built: `--config.splits.train=()

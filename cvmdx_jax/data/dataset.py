@@ -37,8 +37,7 @@ CONFIG_RANGES = {
              **dict.fromkeys(("workers", "duration_s", "road_length_m", "section_length_m",
                               "lanes", "lane_width_m", "speed_limits_kmh", "flow_per_lane",
                               "car_types", "truck_types"), POSITIVE)},
-    "sumo.recordings": {"train": POSITIVE, "val": POSITIVE, "test": POSITIVE,
-                        "test_ood": NON_NEGATIVE, "val_ood": NON_NEGATIVE},
+    "sumo.recordings": dict.fromkeys(SPLITS, NON_NEGATIVE),
     "sumo.held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
     "sumo.val_held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
 }
@@ -71,11 +70,15 @@ def _settings(config) -> dict:
 
 
 def _sumo_recordings(config, data_dir: Path) -> Path:
-  """data_dir/recordings, simulated unless a stamp says they were made with these settings."""
+  """data_dir/recordings, simulated unless a stamp says they were made with these settings;
+  DataError, before anything is written, where no split has a recording."""
   rec_dir = data_dir / "recordings"
   stamp = rec_dir / "sumo_settings.json"
   wanted = json.dumps(_settings(config)["sumo"], sort_keys=True)
   ids = [i for split in sumo_plan.split_ids(config.sumo).values() for i in split]
+  if not ids:
+    raise DataError(data_dir, "empty selection: no split has a recording (every "
+                    "sumo.recordings count is 0)", column="sumo.recordings")
   present = all(p.is_file() for i in ids for p in highd.recording_paths(rec_dir, i).values())
   if not (present and stamp.is_file() and stamp.read_text() == wanted):
     stamp.unlink(missing_ok=True)
@@ -86,8 +89,8 @@ def _sumo_recordings(config, data_dir: Path) -> Path:
 
 def _split_ids(config, available, where) -> dict:
   """{split: recording ids present}; DataError for a split whose ids are all missing, for
-  no split at all, or for a recording in two splits (SUMO always has train, val and test:
-  `sumo.recordings` > 0)."""
+  no split at all, or for a recording in two splits. A split given no ids (highD: `()`,
+  SUMO: 0 recordings) is not built."""
   wanted = (sumo_plan.split_ids(config.sumo) if config.source == "sumo"
             else {name: list(config.splits.get(name, ())) for name in SPLITS})
   column = "sumo.recordings" if config.source == "sumo" else "splits"

@@ -151,3 +151,33 @@ def test_sumo_tiny_splits_by_recording_and_held_out_road(tmp_path):
   ood_roads = {road(r) for r in ids["test_ood"]}
   assert {r[0] for r in train_roads} == {2, 3} and {r[1] for r in train_roads} == {3.75}
   assert ood_roads == {(4, 3.5, 30.56)} and not ood_roads & train_roads
+
+
+def test_sumo_road_of_ones_own_as_a_test_ood_only_dataset(tmp_path):
+  """0 recordings for train, val, test and val_ood: only test_ood is simulated and built, on
+  the road given in `sumo.held_out` (read back from the written lane markings)."""
+  config = dataset_config.get_config("tiny")
+  for name in ("train", "val", "test", "val_ood"):
+    config.sumo.recordings[name] = 0
+  config.sumo.held_out.update(lanes=2, lane_width_m=3.25, speed_limit_kmh=80.0,
+                              duration_s=30.0)
+  config.extraction.balance = False
+  splits = dataset.build(config, tmp_path)
+  assert list(splits) == ["test_ood"] and len(splits["test_ood"]) > 0
+  assert dataset.split_names(tmp_path) == ["test_ood"]
+  assert set(splits["test_ood"].recording_id.tolist()) == {1}
+  assert highd.available_recordings(tmp_path / "recordings") == [1]
+  meta = pd.read_csv(highd.recording_paths(tmp_path / "recordings", 1)["recordingMeta"])
+  upper = np.array([float(v) for v in meta.upperLaneMarkings[0].split(";")])
+  assert len(upper) - 1 == 2 and np.allclose(np.diff(upper), 3.25)
+  assert meta.speedLimit[0] == pytest.approx(80.0 / 3.6, abs=0.01)
+
+
+def test_sumo_no_recording_at_all_is_refused_before_simulating(tmp_path):
+  config = dataset_config.get_config("tiny")
+  for name in sumo_plan.SPLITS:
+    config.sumo.recordings[name] = 0
+  with pytest.raises(DataError, match="empty selection: no split has a recording") as info:
+    dataset.build(config, tmp_path / "out")
+  assert info.value.column == "sumo.recordings"
+  assert not (tmp_path / "out").exists()
