@@ -35,7 +35,7 @@ jemalloc:
 demo: $(STAMP)
 	$(PY) experiments/run_demo.py --workdir=runs/demo
 
-## The default test run (~15 min on 2 cores).
+## The default test run (6-10 min on 2 cores, install included).
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 -m "not slow"
 
