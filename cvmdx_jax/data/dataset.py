@@ -69,30 +69,36 @@ def _settings(config) -> dict:
   return identity.to_json(c, "dataset settings")
 
 
-def _sumo_recordings(config, data_dir: Path) -> Path:
-  """data_dir/recordings, simulated unless a stamp says they were made with these settings;
-  DataError, before anything is written, where no split has a recording."""
+def _wanted_ids(config, data_dir: Path) -> dict:
+  """{split: recording ids asked for} (SUMO: numbered by `sumo_plan.split_ids`); DataError,
+  before anything is simulated or read, where no split has one. A split given no ids
+  (highD: `()`, SUMO: 0 recordings) is not built."""
+  sumo_source = config.source == "sumo"
+  wanted = (sumo_plan.split_ids(config.sumo) if sumo_source
+            else {name: list(config.splits.get(name, ())) for name in SPLITS})
+  if not any(wanted.values()):
+    raise DataError(data_dir, "empty selection: no split has a recording",
+                    column="sumo.recordings" if sumo_source else "splits")
+  return wanted
+
+
+def _sumo_recordings(config, data_dir: Path, wanted: dict) -> Path:
+  """data_dir/recordings, simulated unless a stamp says they were made with these settings."""
   rec_dir = data_dir / "recordings"
   stamp = rec_dir / "sumo_settings.json"
-  wanted = json.dumps(_settings(config)["sumo"], sort_keys=True)
-  ids = [i for split in sumo_plan.split_ids(config.sumo).values() for i in split]
-  if not ids:
-    raise DataError(data_dir, "empty selection: no split has a recording (every "
-                    "sumo.recordings count is 0)", column="sumo.recordings")
+  settings = json.dumps(_settings(config)["sumo"], sort_keys=True)
+  ids = [i for split in wanted.values() for i in split]
   present = all(p.is_file() for i in ids for p in highd.recording_paths(rec_dir, i).values())
-  if not (present and stamp.is_file() and stamp.read_text() == wanted):
+  if not (present and stamp.is_file() and stamp.read_text() == settings):
     stamp.unlink(missing_ok=True)
     sumo.make_recordings(config.sumo, rec_dir)
-    atomic.write_text(stamp, wanted)
+    atomic.write_text(stamp, settings)
   return rec_dir
 
 
-def _split_ids(config, available, where) -> dict:
-  """{split: recording ids present}; DataError for a split whose ids are all missing, for
-  no split at all, or for a recording in two splits. A split given no ids (highD: `()`,
-  SUMO: 0 recordings) is not built."""
-  wanted = (sumo_plan.split_ids(config.sumo) if config.source == "sumo"
-            else {name: list(config.splits.get(name, ())) for name in SPLITS})
+def _split_ids(config, wanted: dict, available, where) -> dict:
+  """{split: recording ids of `wanted` present}; DataError for a split whose ids are all
+  missing, or for a recording in two splits."""
   column = "sumo.recordings" if config.source == "sumo" else "splits"
   out, seen = {}, {}
   for name in SPLITS:
@@ -110,9 +116,6 @@ def _split_ids(config, available, where) -> dict:
                       column=f"{column}.{name}")
     if ids:
       out[name] = ids
-  if not out:
-    raise DataError(where, f"empty selection: no split has a recording (have {available})",
-                    column=column)
   return out
 
 
@@ -163,11 +166,12 @@ def build(config, data_dir) -> dict:
     names = _MAT_SPLITS
     read = lambda: _read_mat(config, mat_dir)
   else:
-    rec_dir = root = (_sumo_recordings(config, data_dir) if config.source == "sumo"
+    wanted = _wanted_ids(config, data_dir)
+    rec_dir = root = (_sumo_recordings(config, data_dir, wanted) if config.source == "sumo"
                       else Path(config.highd_dir))
     if not rec_dir.is_dir():
       raise DataError(rec_dir, "highD directory not found", column="config.highd_dir")
-    ids = _split_ids(config, highd.available_recordings(rec_dir), rec_dir)
+    ids = _split_ids(config, wanted, highd.available_recordings(rec_dir), rec_dir)
     files = [p for split in ids.values() for i in split
              for p in highd.recording_paths(rec_dir, i).values() if p.is_file()]
     ext = extract.as_config(config.extraction)
