@@ -18,3 +18,11 @@ CLASS_NAMES = ("kl", "lcr", "lcl")
 # Control normalisation: a_x / 4 m/s^2, yaw rate / 0.7 rad/s, clipped to [-1, 1].
 ACCEL_SCALE = 4.0  # m/s^2
 YAW_RATE_SCALE = 0.7  # rad/s
+
+# Precision of the matrix products outside the networks (VMM fit, PCA, GMM, k-means, hypothesis
+# means, scores): true float32 on every backend. By default XLA computes float32 products on
+# NVIDIA GPUs in TF32 (10-bit mantissa), which moved hypothesis positions 100-290 m ahead by
+# up to 12 cm on an H200 (BUILD_NOTES, 2026-12-04). CPUs compute float32 either way: CPU
+# outputs are unchanged.
+# The networks keep the backend's default (a GPU's TF32 convolutions, as PyTorch's cuDNN uses).
+EXACT_MATMUL = "highest"

@@ -91,16 +91,17 @@ def fit_controls(future, v0, psi0, smoothing: float = 1e-2, iterations: int = 8)
   t = jnp.arange(1, constants.T_PRED + 1) * constants.DT
   dist = jnp.linalg.norm(jnp.diff(future, axis=1, prepend=0 * future[:, :1]), axis=-1)
   v_mean = jnp.maximum(dist.mean(-1) / constants.DT, 1.0)[:, None]  # (M, 1)
+  mm = functools.partial(jnp.matmul, precision=constants.EXACT_MATMUL)
 
   def step(controls, _):
     r = future - rollout(controls, v0, psi0)
     a, w = controls[..., 0], controls[..., 1]
-    a = a + r[..., 0] @ g.T - a @ h.T
-    w = w + (r[..., 1] / v_mean) @ g.T - w @ h.T
+    a = a + mm(r[..., 0], g.T) - mm(a, h.T)
+    w = w + mm(r[..., 1] / v_mean, g.T) - mm(w, h.T)
     return jnp.stack([a, w], -1), None
 
   init = jnp.zeros_like(future)
-  init = init.at[..., 0].set(((future[:, :, 0] - v0[:, None] * t) @ g.T))
-  init = init.at[..., 1].set(((future[:, :, 1] / v_mean - psi0[:, None] * t) @ g.T))
+  init = init.at[..., 0].set(mm(future[:, :, 0] - v0[:, None] * t, g.T))
+  init = init.at[..., 1].set(mm(future[:, :, 1] / v_mean - psi0[:, None] * t, g.T))
   controls, _ = jax.lax.scan(step, init, None, length=iterations)
   return controls

@@ -152,13 +152,16 @@ def predict_line(label: str, b: int, seconds: float, gflop: float | None = None,
 
 def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int = 1):
   """Median seconds of one jitted training step (AdamW, EMA) at `batch` (`config.model`
-  sized for its tokens)."""
+  sized for its tokens; the conditioning vector and intent labels its config asks for)."""
   _, init_fn, step_fn = diffusion_train.init_and_step(config, 10_000)
   state = init_fn(jax.random.key(0))
   step = jax.jit(step_fn, donate_argnums=0)
+  model = config.model
   data = {"x0": jax.random.uniform(jax.random.key(1), (batch, 125, 2), minval=-1, maxval=1),
-          "q": jnp.arange(batch) % NUM_TOKENS, "weight": jnp.ones(batch),
-          "ego": jnp.zeros((batch, ego_motion.NUM_FEATURES))}
+          "q": jnp.arange(batch) % model.null_token, "weight": jnp.ones(batch),
+          "ego": jnp.zeros((batch, model.cond_dim))}
+  if model.num_intents:
+    data["label"] = jnp.arange(batch) % model.num_intents
   holder = {"state": state}
 
   def one():
@@ -238,7 +241,7 @@ def ratio_rows(official: dict, ours: dict) -> list[tuple[str, float, float, floa
 def ratio_table(official: dict, ours: dict) -> str:
   """Markdown table of `ratio_rows`."""
   lines = ["| what | official | cvmdx_jax | official / cvmdx_jax |", "|---|---|---|---|"]
-  lines += [f"| {what} | {off:.3f} s | {mine:.3f} s | {ratio:.2f}x |"
+  lines += [f"| {what} | {off:.3g} s | {mine:.3g} s | {ratio:.2f}x |"
             for what, off, mine, ratio in ratio_rows(official, ours)]
   return "\n".join(lines)
 

@@ -29,3 +29,14 @@ def shared_dir() -> Path:
   if not SHARED.is_dir():
     pytest.skip("../shared is not beside this checkout")
   return SHARED
+
+
+@pytest.fixture
+def float32_arithmetic():
+  """Runs a test in true float32 on every backend. By default XLA computes float32
+  convolutions and products on NVIDIA GPUs in TF32, as PyTorch's cuDNN does, and the library
+  keeps that default for its networks (`constants.EXACT_MATMUL`); tests of the networks'
+  arithmetic against float32 tolerances ask for this. No effect on a CPU."""
+  import jax  # here: the environment above is set before JAX is imported
+  with jax.default_matmul_precision("float32"):
+    yield

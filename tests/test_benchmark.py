@@ -6,6 +6,7 @@ import json
 import pytest
 
 from configs import diffusion as diffusion_config
+from cvmdx_jax import ego_motion
 from cvmdx_jax.inference import sampling as sampling_lib
 from cvmdx_jax.models.performance import PerformanceOptions
 from cvmdx_jax.runs.config import DiffusionConfig
@@ -33,6 +34,14 @@ def test_reference_timings_schema_on_a_tiny_model(tmp_path):
   assert benchmark.read_timings(tmp_path / "ours.json") == timings
 
 
+def test_train_timing_feeds_the_conditioning_and_labels_of_the_demo_denoiser():
+  base = diffusion_config.get_config("tiny")  # with the demo's conditioning
+  base.diffusion.conditioning, base.diffusion.intent_conditioning = "ego_film_residual", True
+  config = DiffusionConfig.from_config(base).with_tokens(4)
+  assert config.model.cond_dim > ego_motion.NUM_FEATURES and config.model.num_intents == 3
+  assert benchmark.train_timing(config, batch=4, repeats=1) > 0
+
+
 def test_ratio_table_against_a_fake_official_json(tmp_path):
   path = tmp_path / "official.json"
   path.write_text(json.dumps(OFFICIAL))
@@ -45,6 +54,8 @@ def test_ratio_table_against_a_fake_official_json(tmp_path):
   assert rows[1][1:3] == pytest.approx((1.5, 0.5))
   table = benchmark.ratio_table(official, ours).splitlines()
   assert len(table) == 5 and table[2].endswith("| 4.00x |") and "1.25x" in table[4]
+  gpu = benchmark.ratio_table(official, {**ours, "big": {"total": 0.0115, "b": 32}})
+  assert "| 0.000359 s |" in gpu  # three significant digits at a GPU's speed
 
 
 def test_read_timings_names_the_file_and_the_missing_field(tmp_path):

@@ -1,4 +1,5 @@
-"""The package's run-time imports: scikit-learn and the tests stay out of it."""
+"""The package's run-time imports: scikit-learn, SUMO and the tests stay out of it (SUMO's
+programs are looked up only when the SUMO source simulates)."""
 
 import os
 import subprocess
@@ -14,11 +15,12 @@ names = [m.name for m in pkgutil.walk_packages(cvmdx_jax.__path__, "cvmdx_jax.")
 for name in names:
   importlib.import_module(name)
 assert "cvmdx_jax.evaluation.report" in names
-print(sorted({n.split(".")[0] for n in sys.modules if n.split(".")[0] in ("sklearn", "tests")}))
+print(sorted({n.split(".")[0] for n in sys.modules
+              if n.split(".")[0] in ("sklearn", "sumo", "sumolib", "tests")}))
 """
 
 
-def test_no_module_of_the_package_imports_sklearn_or_tests():
+def test_no_module_of_the_package_imports_sklearn_sumo_or_tests():
   env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
   proc = subprocess.run([sys.executable, "-c", _IMPORT_ALL], cwd=REPO, env=env,
                         capture_output=True, text=True, timeout=600)

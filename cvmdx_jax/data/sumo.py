@@ -15,10 +15,9 @@ import tempfile
 from pathlib import Path
 
 import pandas as pd
-import sumo as sumo_pkg
 
 from cvmdx_jax import constants
-from cvmdx_jax.data import sumo_export, sumo_network, sumo_plan
+from cvmdx_jax.data import errors, sumo_export, sumo_network, sumo_plan
 
 PLANS_FILE = "plans.json"
 
@@ -36,7 +35,7 @@ def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
   routes = sumo_network.write_routes(cfg, plan, work_dir, name)
   fcd = work_dir / f"{name}.fcd.csv"
   command = [
-      str(Path(sumo_pkg.SUMO_HOME) / "bin" / "sumo"), "-n", str(net), "-r", str(routes),
+      str(sumo_network.sumo_program("sumo")), "-n", str(net), "-r", str(routes),
       "--step-length", f"{constants.DT}", "--lateral-resolution", f"{cfg.lateral_resolution}",
       "--seed", str(cfg.seed * 1000 + recording_id), "--begin", "0",
       "--end", f"{cfg.warmup_s + plan.duration_s}", "--fcd-output", str(fcd),
@@ -64,6 +63,10 @@ def make_recordings(cfg, out_dir) -> dict:
     {recording id: number of rows in its tracks file}.
   """
   out_dir = Path(out_dir)
+  try:
+    sumo_network.sumo_program("sumo")
+  except ImportError as e:  # before any process starts or anything is written
+    raise errors.DataError(out_dir, str(e), column="source") from None
   plans = sumo_plan.plans(cfg)
   with tempfile.TemporaryDirectory(prefix="sumo_") as tmp:
     # Processes, not threads: the pandas export holds the GIL. Spawned: the parent may

@@ -12,12 +12,27 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
-import sumo
 
 # DriverType field -> SUMO vType attribute, for the car-following and lane-change parameters.
 _VTYPE_ATTRIBUTES = (("accel", "accel"), ("decel", "decel"), ("sigma", "sigma"), ("tau", "tau"),
                      ("lc_speed_gain", "lcSpeedGain"), ("lc_keep_right", "lcKeepRight"),
                      ("max_speed_lat", "maxSpeedLat"), ("lc_accel_lat", "lcAccelLat"))
+
+
+def sumo_program(name: str) -> Path:
+  """SUMO's program `name` ('sumo', 'netconvert') in the eclipse-sumo package, imported here
+  and not with the module, so that reading, training and evaluating need no SUMO.
+
+  Raises:
+    ImportError: eclipse-sumo is not installed; the message says how to install it.
+  """
+  try:
+    import sumo  # pylint: disable=import-outside-toplevel
+  except ImportError:
+    raise ImportError("the SUMO source needs SUMO's programs: install eclipse-sumo (`make "
+                      "install` does; pip install eclipse-sumo), or read highD "
+                      "(source='highd')") from None
+  return Path(sumo.SUMO_HOME) / "bin" / name
 
 
 def vehicle_dims(plan) -> dict:
@@ -53,9 +68,8 @@ def write_network(cfg, road, work_dir: Path, name: str = "highway") -> Path:
       f'  <edge id="E" from="e0" to="e1" {lanes}/>\n'
       f'  <edge id="W" from="w0" to="w1" {lanes}/>\n'
       "</edges>\n")
-  netconvert = Path(sumo.SUMO_HOME) / "bin" / "netconvert"
-  subprocess.run([str(netconvert), "-n", str(nodes), "-e", str(edges), "-o", str(net),
-                  "--no-turnarounds", "true", "--no-warnings", "true"],
+  subprocess.run([str(sumo_program("netconvert")), "-n", str(nodes), "-e", str(edges),
+                  "-o", str(net), "--no-turnarounds", "true", "--no-warnings", "true"],
                  check=True, capture_output=True)
   return net
 

@@ -8,6 +8,7 @@ Brier-minFDE, ... as for cVMDx's hypotheses).
 
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
 from cvmdx_jax.evaluation import metrics, scoring
 from cvmdx_jax.runs.loaders import LearnedBaseline, TokenizerBundle
 from cvmdx_jax.storage import identity
@@ -42,7 +43,7 @@ def errors(trajectories, probs, gt, labels) -> dict:
   """Per-scenario errors of the rows `METHODS`: trajectories (M, K, T, 2), probs (M, K),
   gt (M, T, 2), labels (M,) -> {method: {metric: (M,)}} (`scoring` metrics)."""
   trajectories, probs, gt = (jnp.asarray(a) for a in (trajectories, probs, gt))
-  mean = jnp.einsum("mk,mktc->mtc", probs, trajectories)
+  mean = jnp.einsum("mk,mktc->mtc", probs, trajectories, precision=constants.EXACT_MATMUL)
   # every head is a hypothesis: a probability that underflowed to 0 must not drop it
   used = jnp.maximum(probs, jnp.finfo(probs.dtype).tiny)
   return {"mlp_most_likely": scoring.single_trajectory_errors(

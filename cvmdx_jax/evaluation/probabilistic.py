@@ -26,6 +26,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
+
 COVARIANCE_FLOOR_M2 = 0.1  # added to each axis of every hypothesis covariance, m^2
 NUM_BINS = 10  # calibration bins of equal width over [0, 1]
 
@@ -44,7 +46,7 @@ def energy_score(samples, gt):
   centred = samples - jnp.mean(samples, axis=-3, keepdims=True)
   flat = centred.reshape(centred.shape[:-2] + (-1,)) / math.sqrt(samples.shape[-2])
   sq_norm = jnp.sum(flat ** 2, axis=-1)
-  gram = jnp.einsum("...id,...jd->...ij", flat, flat)
+  gram = jnp.einsum("...id,...jd->...ij", flat, flat, precision=constants.EXACT_MATMUL)
   sq = jnp.maximum(sq_norm[..., :, None] + sq_norm[..., None, :] - 2.0 * gram, 0.0)
   off_diagonal = 1.0 - jnp.eye(n, dtype=samples.dtype)
   spread = jnp.sum(jnp.sqrt(sq) * off_diagonal, axis=(-2, -1)) / (n * (n - 1))
@@ -66,10 +68,12 @@ def hypothesis_covariances(points, labels, num_slots: int,
   """
   one_hot = jax.nn.one_hot(labels, num_slots, dtype=points.dtype)  # (..., N, K)
   counts = jnp.maximum(jnp.sum(one_hot, axis=-2), 1.0)  # (..., K)
-  means = jnp.einsum("...nk,...nd->...kd", one_hot, points) / counts[..., None]
+  means = jnp.einsum("...nk,...nd->...kd", one_hot, points,
+                     precision=constants.EXACT_MATMUL) / counts[..., None]
   dev = points[..., None, :, :] - means[..., :, None, :]  # (..., K, N, 2)
   weighted = dev * jnp.swapaxes(one_hot, -1, -2)[..., None]
-  cov = jnp.einsum("...kni,...knj->...kij", weighted, dev) / counts[..., None, None]
+  cov = jnp.einsum("...kni,...knj->...kij", weighted, dev,
+                   precision=constants.EXACT_MATMUL) / counts[..., None, None]
   return means, cov + floor * jnp.eye(2, dtype=points.dtype)
 
 

@@ -28,6 +28,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -124,9 +126,10 @@ def m_step(points: jax.Array, responsibilities: jax.Array, active: jax.Array,
   """
   dim = points.shape[-1]
   counts = jnp.sum(responsibilities, axis=0) + 10 * jnp.finfo(points.dtype).eps
-  means = responsibilities.T @ points / counts[:, None]
+  means = jnp.matmul(responsibilities.T, points, precision=constants.EXACT_MATMUL) / counts[:, None]
   diff = points[None] - means[:, None]  # (K, N, r)
-  scatter = jnp.einsum("nk,kni,knj->kij", responsibilities, diff, diff)
+  scatter = jnp.einsum("nk,kni,knj->kij", responsibilities, diff, diff,
+                       precision=constants.EXACT_MATMUL)
   covariances = scatter / counts[:, None, None] + reg_covar * jnp.eye(dim, dtype=points.dtype)
   weights = jnp.where(active, counts, 0.0)
   return Mixture(weights / jnp.sum(weights), means, covariances)

@@ -22,6 +22,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
 from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import kmeans
@@ -131,7 +132,7 @@ def _group(component, trajectories, num_slots: int):
   labels = rank[component]
   counts = counts[order]
   one_hot = jax.nn.one_hot(labels, num_slots, dtype=trajectories.dtype)  # (N, num_slots)
-  sums = jnp.einsum("nk,ntd->ktd", one_hot, trajectories)
+  sums = jnp.einsum("nk,ntd->ktd", one_hot, trajectories, precision=constants.EXACT_MATMUL)
   means = sums / jnp.maximum(counts, 1).astype(trajectories.dtype)[:, None, None]
   return (jnp.sum(counts > 0).astype(jnp.int32), labels.astype(jnp.int32), means,
           counts.astype(trajectories.dtype) / component.shape[0])

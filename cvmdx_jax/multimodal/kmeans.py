@@ -22,6 +22,7 @@ and their clusters stay empty.
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
 from cvmdx_jax.multimodal import gmm
 
 
@@ -49,7 +50,7 @@ def update(points: jax.Array, labels: jax.Array, centers: jax.Array) -> jax.Arra
   """Mean of each cluster's points; an empty cluster keeps its centre. -> (K, D)."""
   one_hot = jax.nn.one_hot(labels, centers.shape[0], dtype=points.dtype)  # (N, K)
   counts = jnp.sum(one_hot, axis=0)
-  sums = one_hot.T @ points
+  sums = jnp.matmul(one_hot.T, points, precision=constants.EXACT_MATMUL)
   return jnp.where(counts[:, None] > 0, sums / jnp.maximum(counts, 1.0)[:, None], centers)
 
 

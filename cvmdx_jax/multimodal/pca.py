@@ -12,6 +12,8 @@ farthest-point seeding) is invariant to it.
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
+
 
 def project(points: jax.Array, dim: int) -> jax.Array:
   """Principal-component scores of each set of points.
@@ -33,7 +35,8 @@ def project(points: jax.Array, dim: int) -> jax.Array:
         f"pca_dim must be in [1, min(N, D)] = [1, {min(num_points, num_features)}] "
         f"for points of shape {points.shape}, got {dim}")
   centred = points - jnp.mean(points, axis=-2, keepdims=True)
-  gram = centred @ jnp.swapaxes(centred, -1, -2)  # (..., N, N)
+  gram = jnp.matmul(centred, jnp.swapaxes(centred, -1, -2),
+                    precision=constants.EXACT_MATMUL)  # (..., N, N)
   eigvals, eigvecs = jnp.linalg.eigh(gram)  # ascending
   top_vals = eigvals[..., ::-1][..., :dim]
   top_vecs = eigvecs[..., ::-1][..., :dim]

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from cvmdx_jax import ego_motion
+from cvmdx_jax import constants, ego_motion
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.models import multiple_choice as mc
@@ -81,7 +81,7 @@ def evaluate(graphdef, params, model_cfg, data, cls_weight: float) -> dict:
   probs = jax.nn.softmax(logits, axis=-1)
   valid = jnp.ones(probs.shape, bool)
   likely = metrics.most_likely(trajectories, probs)
-  mean = jnp.einsum("bk,bktc->btc", probs, trajectories)
+  mean = jnp.einsum("bk,bktc->btc", probs, trajectories, precision=constants.EXACT_MATMUL)
   share = jnp.mean(jax.nn.one_hot(parts.pop("winner"), model_cfg.num_hypotheses), axis=0)
   return {"loss": loss, **parts,
           "min_ade": jnp.mean(metrics.min_ade_k(trajectories, gt, valid)),

@@ -1,5 +1,6 @@
 """SUMO -> highD export: file format, frame conventions, lane ids and neighbour geometry."""
 
+import sys
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -7,7 +8,7 @@ import pandas as pd
 import pytest
 
 from configs import dataset as dataset_config
-from cvmdx_jax.data import highd, sumo, sumo_export, sumo_network, sumo_plan
+from cvmdx_jax.data import errors, highd, sumo, sumo_export, sumo_network, sumo_plan
 
 
 def _one_recording(lanes: int, lane_width_m: float = 3.75):
@@ -116,3 +117,12 @@ def test_recordings_are_deterministic_under_the_seed(tmp_path):
     assert path.read_bytes() == highd.recording_paths(tmp_path / "b", 1)[kind].read_bytes()
   assert (tmp_path / "a" / sumo.PLANS_FILE).read_text() == (
       tmp_path / "b" / sumo.PLANS_FILE).read_text()
+
+
+def test_without_eclipse_sumo_the_source_is_refused_naming_it(tmp_path, monkeypatch):
+  monkeypatch.setitem(sys.modules, "sumo", None)  # `import sumo` raises ImportError
+  with pytest.raises(errors.DataError) as e:
+    sumo.make_recordings(_one_recording(2), tmp_path / "rec")
+  assert str(e.value).startswith(f"file {tmp_path / 'rec'}, column 'source': ")
+  assert "install eclipse-sumo" in str(e.value)
+  assert not list(tmp_path.iterdir())  # nothing written

@@ -4,6 +4,7 @@ no state between reads, and refuses anything but plain containers and tensors wi
 
 import collections
 import pickle
+import re
 import struct
 import subprocess
 import sys
@@ -170,15 +171,19 @@ def test_entries_sharing_bytes_are_read_once_at_most(tmp_path, monkeypatch, dept
   pkl, _ = fx.pickled({f"t{k}": fx._Tensor(str(k), payload) for k in range(depth)}, monkeypatch)
   path = tmp_path / "nested.pt"
   fx.write_nested_entries(path, pkl, "a", payload.tobytes(), depth)
-  with zipfile.ZipFile(path) as z:  # valid entries, together larger than the file
+  with zipfile.ZipFile(path) as z:  # entries that share bytes, together larger than the file
     sizes = [z.getinfo(f"a/data/{k}").file_size for k in range(depth)]
-    assert all(z.read(f"a/data/{k}")[-1024:] == payload.tobytes() for k in range(depth))
+    try:
+      assert all(z.read(f"a/data/{k}")[-1024:] == payload.tobytes() for k in range(depth))
+      message = f"the entries read add up to more than the archive's {path.stat().st_size} bytes"
+    except zipfile.BadZipFile as e:  # CPython 3.12's zipfile refuses overlapping entries itself
+      assert depth > 1 and "Overlapped entries" in str(e)
+      message = "unreadable archive or pickle (BadZipFile: Overlapped entries"
   if depth == 1:
     np.testing.assert_array_equal(torch_zip.read_pt(path)["t0"], payload)
     return
   assert sum(sizes) > 3 * path.stat().st_size
-  with pytest.raises(torch_zip.TorchFileError, match="the entries read add up to more than "
-                     f"the archive's {path.stat().st_size} bytes"):
+  with pytest.raises(torch_zip.TorchFileError, match=re.escape(message)):
     torch_zip.read_pt(path)
 
 
