@@ -19,8 +19,9 @@ CLASS_NAMES = ("kl", "lcr", "lcl")
 ACCEL_SCALE = 4.0  # m/s^2
 YAW_RATE_SCALE = 0.7  # rad/s
 
-# Precision of the matrix products outside the networks (VMM fit, PCA, GMM, k-means, hypothesis
-# means, scores): true float32 on every backend. By default XLA computes float32 products on
+# Precision of the matrix products outside the networks' layers (the nearest-codebook search,
+# the Mahalanobis delta, VMM fit, PCA, GMM, k-means, hypothesis means, scores): true float32
+# on every backend. By default XLA computes float32 products on
 # NVIDIA GPUs in TF32 (10-bit mantissa), which moved hypothesis positions 100-290 m ahead by
 # up to 12 cm on an H200 (BUILD_NOTES, 2026-12-04). CPUs compute float32 either way: CPU
 # outputs are unchanged.

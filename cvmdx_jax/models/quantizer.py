@@ -27,6 +27,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
 from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
 
 QUANTIZERS = ("vq", "cvq")
@@ -85,7 +86,8 @@ def init_codebook(key: jax.Array, config: QuantizerConfig) -> jax.Array:
 
 def nearest(codebook: jax.Array, z_hat: jax.Array) -> jax.Array:
   """(Q, D) codebook, (B, D) latents -> (B,) int32 index of the nearest entry (L2)."""
-  d2 = (jnp.sum(z_hat**2, -1, keepdims=True) - 2.0 * z_hat @ codebook.T
+  d2 = (jnp.sum(z_hat**2, -1, keepdims=True)
+        - 2.0 * jnp.matmul(z_hat, codebook.T, precision=constants.EXACT_MATMUL)
         + jnp.sum(codebook**2, -1))
   return jnp.argmin(d2, axis=-1).astype(jnp.int32)
 

@@ -17,6 +17,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from cvmdx_jax import constants
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -71,7 +73,7 @@ def fit_gaussians(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
   chol = jnp.linalg.cholesky(cov)
   chol_inv = jax.scipy.linalg.solve_triangular(
       chol, jnp.broadcast_to(eye, cov.shape), lower=True)
-  precision = jnp.swapaxes(chol_inv, -1, -2) @ chol_inv
+  precision = jnp.matmul(jnp.swapaxes(chol_inv, -1, -2), chol_inv, precision=constants.EXACT_MATMUL)
   return Gaussians(codebook, cov, precision, count)
 
 
@@ -79,5 +81,6 @@ def mahalanobis(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
                 gaussians: Gaussians) -> jax.Array:
   """delta: (B, D) latents, (B,) their tokens -> (B,) Mahalanobis distance to their entry."""
   diff = jnp.asarray(z_hat, jnp.float32) - gaussians.mean[indices]
-  quad = jnp.einsum("bi,bij,bj->b", diff, gaussians.precision[indices], diff)
+  quad = jnp.einsum("bi,bij,bj->b", diff, gaussians.precision[indices], diff,
+                    precision=constants.EXACT_MATMUL)
   return jnp.sqrt(jnp.maximum(quad, 0.0))
