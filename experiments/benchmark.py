@@ -107,11 +107,13 @@ def _time(fn, repeats, warmup=1):
 
 
 def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
-  """XLA's FLOP count of one U-Net forward pass for `batch` sequences."""
+  """XLA's FLOP count of one U-Net forward pass for `batch` sequences, of the lowered
+  computation: after compiling for a GPU the count leaves out the convolutions handed to
+  cuDNN (0.004 against 0.045 GFLOP for the demo U-Net on an H200)."""
   f = jax.jit(lambda p, x, t, q, c: unet1d.apply_unet(graphdef, p, x, t, q, cond=c))
   args = (params, jnp.zeros((batch, 125, 2)), jnp.zeros(batch, jnp.int32),
           jnp.zeros(batch, jnp.int32), jnp.zeros((batch, cond_dim)) if cond_dim else None)
-  cost = f.lower(*args).compile().cost_analysis()
+  cost = f.lower(*args).cost_analysis()
   cost = cost[0] if isinstance(cost, (list, tuple)) else cost
   return float(cost["flops"])
 
