@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from cvmdx_jax import host_allocator as ha
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[1]
 JE = "/opt/lib/libjemalloc.so.2"
@@ -93,7 +94,7 @@ def _entry_point(tmp_path, allocator: bool):
   script.write_text(_SCRIPT.format(allocator=allocator))
   env = {k: v for k, v in os.environ.items()
          if k not in (ha.OPT_OUT, ha.APPLIED, "GLIBC_TUNABLES")}
-  env.update(PYTHONPATH=str(REPO), CVMDX_JEMALLOC="", JAX_PLATFORMS="cpu")
+  env.update(PYTHONPATH=pythonpath(), CVMDX_JEMALLOC="", JAX_PLATFORMS="cpu")
   return lambda *argv, **extra: subprocess.run(
       [sys.executable, str(script), *argv], capture_output=True, text=True,
       env={**env, **extra}, timeout=120)

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests.subprocess_env import pythonpath
+
 REPO = Path(__file__).resolve().parents[1]
 
 _IMPORT_ALL = """
@@ -21,7 +23,7 @@ print(sorted({n.split(".")[0] for n in sys.modules
 
 
 def test_no_module_of_the_package_imports_sklearn_sumo_or_tests():
-  env = {**os.environ, "PYTHONPATH": str(REPO), "JAX_PLATFORMS": "cpu"}
+  env = {**os.environ, "PYTHONPATH": pythonpath(), "JAX_PLATFORMS": "cpu"}
   proc = subprocess.run([sys.executable, "-c", _IMPORT_ALL], cwd=REPO, env=env,
                         capture_output=True, text=True, timeout=600)
   assert proc.returncode == 0, proc.stderr[-3000:]

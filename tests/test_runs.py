@@ -20,6 +20,7 @@ from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig, TokenizerRunConfig
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,7 +29,7 @@ def _imported(modules: str, prefix: str) -> list[str]:
   code = (f"import sys, {modules}; "
           f"print(sorted(m for m in sys.modules if m.startswith({prefix!r})))")
   proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
-                        text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
+                        text=True, timeout=300, env=dict(os.environ, PYTHONPATH=pythonpath()))
   assert proc.returncode == 0, proc.stderr[-2000:]
   return eval(proc.stdout.strip().splitlines()[-1])  # a printed list of names
 

@@ -11,6 +11,7 @@ import pytest
 from cvmdx_jax.data import dataset, extract, highd
 from cvmdx_jax.data.errors import DataError, DataWarning
 from tests.data.conftest import write_recording
+from tests.subprocess_env import pythonpath
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -229,7 +230,7 @@ def test_make_dataset_exits_nonzero_without_cache(highd_dir, tmp_path):
       [sys.executable, "experiments/make_dataset.py", "--config=configs/dataset.py:tiny",
        f"--data_dir={out}", "--config.source=highd", f"--config.highd_dir={highd_dir}",
        "--config.splits.train=(1,)", "--config.splits.val=(3,)", "--config.splits.test=(2,)"],
-      cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": str(ROOT),
+      cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": pythonpath(),
                                                      "JAX_PLATFORMS": "cpu"})
   assert result.returncode != 0
   assert "01_tracks.csv, row 9, column 'y'" in result.stderr

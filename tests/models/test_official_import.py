@@ -19,6 +19,7 @@ from cvmdx_jax.runs import loaders
 from cvmdx_jax.storage import locking
 from cvmdx_jax.models import official_import, unet1d
 from tests.models import official_fixture as fx
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[2]
 Q = 7
@@ -115,7 +116,7 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   (workdir / ".import.killed" / "checkpoints").mkdir(parents=True)  # an import killed -9
   cmd = [sys.executable, "experiments/import_official.py", f"--checkpoint={path}",
          f"--workdir={workdir}"]
-  env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
+  env = {"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
   assert not list(workdir.glob(".import.*"))
@@ -132,7 +133,7 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
 
 def _import(args, workdir, timeout=300):
   cmd = [sys.executable, "experiments/import_official.py", *args, f"--workdir={workdir}"]
-  env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
+  env = {"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True,
                         timeout=timeout)
 

@@ -16,6 +16,7 @@ import pytest
 
 from cvmdx_jax.models import torch_zip
 from tests.models import official_fixture as fx
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -240,7 +241,7 @@ print((peak() - before) // 1024)
 
 def _peak_growth_mb(path) -> tuple[str, int]:
   done = subprocess.run([sys.executable, "-c", _MEASURE, str(path)], cwd=REPO, check=True,
-                        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"},
+                        env={"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin"},
                         capture_output=True, text=True)
   message, growth = done.stdout.strip().splitlines()
   return message, int(growth)

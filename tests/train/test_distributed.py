@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import sharding
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[2]
 JOB = REPO / "tests" / "train" / "toy_job.py"
@@ -28,7 +29,7 @@ def _launch(workdir, processes: int, devices: int = 1, own=(), **args) -> list[s
   """Starts one run of toy_job.py as `processes` processes with `devices` CPU devices each;
   `own[i]` (a dict) adds arguments of process i."""
   env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-             JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
   if processes > 1:
     env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}",
                JAX_NUM_PROCESSES=str(processes))
@@ -84,7 +85,7 @@ def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   holder = subprocess.Popen(
       [sys.executable, "-c", "import sys, time\nfrom cvmdx_jax.storage import locking\n"
        "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n",
-       str(tmp_path)], stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)))
+       str(tmp_path)], stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=pythonpath()))
   try:
     assert holder.stdout.readline().strip() == "held"
     done = _finish(_launch(tmp_path, 2, epochs=1))

@@ -14,6 +14,7 @@ import pytest
 
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import loop
+from tests.subprocess_env import pythonpath
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,7 +34,7 @@ def _epochs_logged(workdir):
 
 def _job(workdir, devices=1, **args):
   env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-             JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
   cmd = [sys.executable, str(JOB), f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
   return cmd, env
 

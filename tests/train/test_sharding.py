@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import sharding
+from tests.subprocess_env import pythonpath
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -74,7 +75,7 @@ def test_two_devices_split_the_batch_and_refuse_odd_sizes():
       print("OK")
   """)
   env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-             JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
   out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
                        timeout=120, cwd=REPO)
   assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]

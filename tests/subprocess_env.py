@@ -1,0 +1,12 @@
+"""The PYTHONPATH of the entry points and scripts the tests start in subprocesses."""
+
+import os
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def pythonpath() -> str:
+  """This checkout first, then the caller's PYTHONPATH: dependencies installed there (a
+  GPU image's `pip install --target`, an HPC module) stay importable in the subprocess."""
+  return os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
