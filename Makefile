@@ -37,11 +37,11 @@ demo: $(STAMP)
 
 ## The default test run (6-10 min on 2 cores, install included).
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 -m "not slow"
+	CVMDX_REQUIRE_SUMO=1 $(PY) -m pytest -q -n 2 -m "not slow"
 
 ## Long tests (kill-and-resume, bigger configs).
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	CVMDX_REQUIRE_SUMO=1 $(PY) -m pytest -q -m slow
 
 benchmark: $(STAMP)
 	PYTHONPATH=. $(PY) experiments/benchmark_sampling.py  # reads tests/multimodal/synthetic.py

@@ -1,5 +1,6 @@
 """Shared pytest fixtures."""
 
+import importlib.util
 import os
 import tempfile
 from pathlib import Path
@@ -21,6 +22,7 @@ from cvmdx_jax import host_allocator  # noqa: E402
 os.environ[host_allocator.OPT_OUT] = "system"
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+REQUIRE_SUMO = "CVMDX_REQUIRE_SUMO"  # "1" (`make test`): a missing eclipse-sumo fails the tests
 
 
 @pytest.fixture
@@ -40,3 +42,14 @@ def float32_arithmetic():
   import jax  # here: the environment above is set before JAX is imported
   with jax.default_matmul_precision("float32"):
     yield
+
+
+@pytest.fixture(scope="session")
+def eclipse_sumo():
+  """For tests that simulate: skips them where eclipse-sumo is not installed (a GPU host that
+  reads highD), fails them instead where CVMDX_REQUIRE_SUMO=1 (`make test`, which installs it)."""
+  if importlib.util.find_spec("sumo") is None:
+    message = "eclipse-sumo is not installed (pip install eclipse-sumo)"
+    if os.environ.get(REQUIRE_SUMO) == "1":
+      pytest.fail(f"{message}, and {REQUIRE_SUMO}=1")
+    pytest.skip(message)

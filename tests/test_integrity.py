@@ -51,7 +51,7 @@ def _train_diffusion(config, workdir):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, eclipse_sumo):
   """A tiny dataset, a tokeniser, a denoiser on it, and a second tokeniser (seed 1) of the
   same fingerprint and step but other weights."""
   root = tmp_path_factory.mktemp("integrity")

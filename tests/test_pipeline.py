@@ -50,7 +50,7 @@ def _train_diffusion(config, workdir):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, eclipse_sumo):
   root = tmp_path_factory.mktemp("pipeline")
   data_dir = root / "data"
   dataset.build(dataset_config.get_config("tiny"), data_dir)

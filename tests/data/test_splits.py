@@ -131,6 +131,7 @@ def test_tokenizer_tokenises_every_cached_split(highd_config, tmp_path):
   assert list(tokenizer_train._load_splits(config)[0]) == ["train", "test"]
 
 
+@pytest.mark.usefixtures("eclipse_sumo")
 def test_sumo_tiny_splits_by_recording_and_held_out_road(tmp_path):
   config = dataset_config.get_config("tiny")
   config.sumo.duration_s = config.sumo.held_out.duration_s = 30.0
@@ -153,6 +154,7 @@ def test_sumo_tiny_splits_by_recording_and_held_out_road(tmp_path):
   assert ood_roads == {(4, 3.5, 30.56)} and not ood_roads & train_roads
 
 
+@pytest.mark.usefixtures("eclipse_sumo")
 def test_sumo_road_of_ones_own_as_a_test_ood_only_dataset(tmp_path):
   """0 recordings for train, val, test and val_ood: only test_ood is simulated and built, on
   the road given in `sumo.held_out` (read back from the written lane markings)."""

@@ -20,6 +20,7 @@ def _one_recording(lanes: int, lane_width_m: float = 3.75):
   return cfg
 
 
+@pytest.mark.usefixtures("eclipse_sumo")
 @pytest.mark.parametrize("lanes", [2, 4])  # 3 lanes: the tiny build of test_splits.py
 def test_sumo_export_is_highd_format(tmp_path, lanes):
   cfg = _one_recording(lanes, 3.5 if lanes == 4 else 3.75)
@@ -75,6 +76,7 @@ def test_sumo_export_is_highd_format(tmp_path, lanes):
   assert len(s) > 0
 
 
+@pytest.mark.usefixtures("eclipse_sumo")
 @pytest.mark.parametrize("lanes", [2, 3, 4])
 def test_lane_ids_follow_the_sumo_network(tmp_path, lanes):
   """Vehicles placed on each lane of the netconvert network (lane centres read from the
@@ -108,6 +110,7 @@ def test_lane_ids_follow_the_sumo_network(tmp_path, lanes):
              for i in range(2 * lanes))
 
 
+@pytest.mark.usefixtures("eclipse_sumo")
 def test_recordings_are_deterministic_under_the_seed(tmp_path):
   cfg = _one_recording(2)
   cfg.duration_s = 20.0

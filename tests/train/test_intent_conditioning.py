@@ -120,6 +120,7 @@ def test_sample_rows_of_features_each_condition_their_own_sample():
   assert not np.allclose(other[2], base[2], atol=1e-3)
 
 
+@pytest.mark.usefixtures("float32_arithmetic")  # batched vs one by one: other TF32 kernels on a GPU
 def test_predict_batch_conditions_each_sample_on_a_class_drawn_from_the_classifier():
   g, p = unet1d.init_unet(INTENT, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
@@ -144,6 +145,7 @@ def test_predict_batch_conditions_each_sample_on_a_class_drawn_from_the_classifi
                                want, atol=1e-5)
 
 
+@pytest.mark.usefixtures("float32_arithmetic")  # batched vs one by one: other TF32 kernels on a GPU
 def test_the_intent_prior_reweights_the_class_draws():
   g, p = unet1d.init_unet(INTENT, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
