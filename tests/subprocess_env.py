@@ -1,4 +1,5 @@
-"""The PYTHONPATH of the entry points and scripts the tests start in subprocesses."""
+"""The PYTHONPATH and environment of the entry points and scripts the tests start in
+subprocesses."""
 
 import os
 from pathlib import Path
@@ -10,3 +11,8 @@ def pythonpath() -> str:
   """This checkout first, then the caller's PYTHONPATH: dependencies installed there (a
   GPU image's `pip install --target`, an HPC module) stay importable in the subprocess."""
   return os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+
+
+def environ(**extra: str) -> dict[str, str]:
+  """The caller's environment with `pythonpath()` and `extra` (e.g. JAX_PLATFORMS="cpu")."""
+  return dict(os.environ, PYTHONPATH=pythonpath(), **extra)

@@ -23,7 +23,7 @@ import pytest
 from configs import diffusion as diffusion_config
 from cvmdx_jax import cli
 from cvmdx_jax.storage import locking
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[1]
 # absl INFO lines (a script may log its devices before it fails): not error output
@@ -187,7 +187,7 @@ def test_user_error_is_one_line_exit_2(inputs, index):
   script, args, named = CASES[index]
   new = inputs / "new" / str(index)
   argv = args.format(T=inputs, NEW=new).split()
-  env = {**os.environ, "PYTHONPATH": pythonpath(), "JAX_PLATFORMS": "cpu"}
+  env = environ(JAX_PLATFORMS="cpu")
   proc = subprocess.run([sys.executable, f"experiments/{script}.py", *argv], cwd=REPO,
                         env=env, capture_output=True, text=True, timeout=120)
   lines = [line for line in proc.stderr.splitlines() if not _INFO.match(line)]
@@ -296,7 +296,7 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
       "  print('ready', flush=True)\n"
       "  time.sleep(60)\n"
       "cli.run(main)\n")
-  env = {**os.environ, "PYTHONPATH": pythonpath(), "JAX_PLATFORMS": "cpu"}
+  env = environ(JAX_PLATFORMS="cpu")
   # SIGINT as in a terminal: a parent that ignores it (an xdist worker may) would pass the
   # ignore on to the child, which then never sees the signal.
   proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env=env,

@@ -17,7 +17,7 @@ from cvmdx_jax.evaluation import report
 from cvmdx_jax.data import dataset
 from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.train import diffusion, tokenizer
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -32,7 +32,7 @@ def holder():
 
   def start(workdir):
     proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(workdir)], text=True,
-                            stdout=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=pythonpath()))
+                            stdout=subprocess.PIPE, env=environ())
     procs.append(proc)
     assert proc.stdout.readline().strip() == "held"
     return proc
@@ -109,7 +109,7 @@ def test_evaluate_script_answers_a_locked_workdir_with_one_line_and_exit_2(tmp_p
       [sys.executable, str(REPO / "experiments" / "evaluate.py"), f"--tokenizer_dir={tmp_path}",
        f"--diffusion_dir={tmp_path}", f"--data_dir={tmp_path}", f"--workdir={tmp_path}/eval"],
       capture_output=True, text=True, timeout=300,
-      env=dict(os.environ, PYTHONPATH=pythonpath(), JAX_PLATFORMS="cpu"))
+      env=environ(JAX_PLATFORMS="cpu"))
   assert out.returncode == 2
   assert out.stderr.startswith("evaluate: error: workdir ") and f"pid {proc.pid}" in out.stderr
   assert "Traceback" not in out.stderr

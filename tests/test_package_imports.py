@@ -1,12 +1,11 @@
 """The package's run-time imports: scikit-learn, SUMO and the tests stay out of it (SUMO's
 programs are looked up only when the SUMO source simulates)."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -23,7 +22,7 @@ print(sorted({n.split(".")[0] for n in sys.modules
 
 
 def test_no_module_of_the_package_imports_sklearn_sumo_or_tests():
-  env = {**os.environ, "PYTHONPATH": pythonpath(), "JAX_PLATFORMS": "cpu"}
+  env = environ(JAX_PLATFORMS="cpu")
   proc = subprocess.run([sys.executable, "-c", _IMPORT_ALL], cwd=REPO, env=env,
                         capture_output=True, text=True, timeout=600)
   assert proc.returncode == 0, proc.stderr[-3000:]

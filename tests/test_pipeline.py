@@ -35,7 +35,7 @@ from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
 from cvmdx_jax.train import baseline, diffusion, distill, tokenizer
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -378,7 +378,7 @@ def test_codebook_ablation_script(runs, tmp_path):
       [sys.executable, str(REPO / "experiments" / "ablate_codebook.py"),
        f"--data_dir={runs / 'data'}", f"--workdir={out}", "--codebook_sizes=4,6",
        "--tokenizer_preset=tiny", "--diffusion_preset=tiny", "--max_scenarios=12"],
-      env=dict(os.environ, PYTHONPATH=pythonpath()), capture_output=True, text=True, timeout=600)
+      env=environ(), capture_output=True, text=True, timeout=600)
   assert proc.returncode == 0, proc.stderr[-3000:]
   rows = [line for line in (out / "ablation.md").read_text().splitlines()
           if line.startswith("| cvq |")]
@@ -394,7 +394,7 @@ def test_codebook_health_script(runs, tmp_path):
       [sys.executable, str(REPO / "experiments" / "codebook_health.py"),
        "--config=configs/tokenizer.py:tiny", f"--config.data_dir={runs / 'data'}",
        f"--workdir={out}", "--codebook_sizes=4"],
-      cwd=REPO, env=dict(os.environ, PYTHONPATH=pythonpath()), capture_output=True, text=True,
+      cwd=REPO, env=environ(), capture_output=True, text=True,
       timeout=600)
   assert proc.returncode == 0, proc.stderr[-3000:]
   lines = (out / "codebook_health.md").read_text().splitlines()
@@ -418,7 +418,7 @@ def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, mon
       [sys.executable, str(REPO / "experiments" / "import_official.py"),
        f"--checkpoint={checkpoint}", f"--workdir={tmp_path / 'official'}",
        f"--tokenizer_dir={runs / 'tokenizer'}"],
-      env=dict(os.environ, PYTHONPATH=pythonpath()), capture_output=True, text=True, timeout=600)
+      env=environ(), capture_output=True, text=True, timeout=600)
   assert proc.returncode == 0, proc.stderr[-3000:]
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "official")
   assert predictor.sampling.mode == "official" and predictor.denoiser.unet.num_tokens == 8

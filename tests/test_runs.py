@@ -3,7 +3,6 @@ trainers, the loop without the prediction path; config sections become the typed
 each field checked by the dataclass that holds it."""
 
 import dataclasses
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +19,7 @@ from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig, TokenizerRunConfig
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -29,7 +28,7 @@ def _imported(modules: str, prefix: str) -> list[str]:
   code = (f"import sys, {modules}; "
           f"print(sorted(m for m in sys.modules if m.startswith({prefix!r})))")
   proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
-                        text=True, timeout=300, env=dict(os.environ, PYTHONPATH=pythonpath()))
+                        text=True, timeout=300, env=environ())
   assert proc.returncode == 0, proc.stderr[-2000:]
   return eval(proc.stdout.strip().splitlines()[-1])  # a printed list of names
 

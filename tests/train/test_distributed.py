@@ -1,7 +1,6 @@
 """Training under `jax.distributed`: several local CPU processes on 127.0.0.1 (toy_job.py)."""
 
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import sharding
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[2]
 JOB = REPO / "tests" / "train" / "toy_job.py"
@@ -28,8 +27,8 @@ def _free_port() -> int:
 def _launch(workdir, processes: int, devices: int = 1, own=(), **args) -> list[subprocess.Popen]:
   """Starts one run of toy_job.py as `processes` processes with `devices` CPU devices each;
   `own[i]` (a dict) adds arguments of process i."""
-  env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
+  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+                JAX_PLATFORMS="cpu")
   if processes > 1:
     env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}",
                JAX_NUM_PROCESSES=str(processes))
@@ -85,7 +84,7 @@ def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   holder = subprocess.Popen(
       [sys.executable, "-c", "import sys, time\nfrom cvmdx_jax.storage import locking\n"
        "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n",
-       str(tmp_path)], stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=pythonpath()))
+       str(tmp_path)], stdout=subprocess.PIPE, text=True, env=environ())
   try:
     assert holder.stdout.readline().strip() == "held"
     done = _finish(_launch(tmp_path, 2, epochs=1))

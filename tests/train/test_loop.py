@@ -1,7 +1,6 @@
 """Tests of the shared training loop (cvmdx_jax.train.loop) on a toy regression task."""
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -14,7 +13,7 @@ import pytest
 
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import loop
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,8 +32,8 @@ def _epochs_logged(workdir):
 
 
 def _job(workdir, devices=1, **args):
-  env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
+  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+                JAX_PLATFORMS="cpu")
   cmd = [sys.executable, str(JOB), f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
   return cmd, env
 

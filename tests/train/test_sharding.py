@@ -1,6 +1,5 @@
 """Tests of cvmdx_jax.sharding: padding, divisibility, batch placement on 1 and 2 devices."""
 
-import os
 import subprocess
 import sys
 import textwrap
@@ -11,7 +10,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import sharding
-from tests.subprocess_env import pythonpath
+from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -74,8 +73,7 @@ def test_two_devices_split_the_batch_and_refuse_odd_sizes():
         raise AssertionError("odd batch accepted")
       print("OK")
   """)
-  env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-             JAX_PLATFORMS="cpu", PYTHONPATH=pythonpath())
+  env = environ(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
   out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
                        timeout=120, cwd=REPO)
   assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
