@@ -38,7 +38,7 @@ from cvmdx_jax.train import baseline, diffusion, distill, tokenizer
 from tests.subprocess_env import environ
 from tests.train import toy
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _train_tokenizer(config, workdir):

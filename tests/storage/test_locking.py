@@ -20,7 +20,7 @@ from cvmdx_jax.train import diffusion, tokenizer
 from tests.subprocess_env import environ
 from tests.train import toy
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 _HOLDER = ("import sys, time\nfrom cvmdx_jax.storage import locking\n"
            "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n")
 

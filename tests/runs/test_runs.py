@@ -21,7 +21,7 @@ from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig, TokenizerRunConfig
 from tests.subprocess_env import environ
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _imported(modules: str, prefix: str) -> list[str]:
