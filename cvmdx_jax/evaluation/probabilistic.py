@@ -10,6 +10,7 @@
   trajectory; a mean of per-step norms (the ADE distance) is a sum of per-step energy
   scores, proper only for the per-step marginals. E d(X, X') uses the N (N - 1) pairs
   i != j (the unbiased "fair" estimate), so a single sample scores E d(X, y).
+  `weighted_energy_score` generalises it to weights (`distributions.WeightedSamples`).
 - `mixture_nll`, `hypothesis_covariances`: negative log-likelihood (nats) of the true
   5 s position under the hypotheses as a Gaussian mixture: weights p(c), means the
   hypotheses' 5 s positions, covariances the (maximum-likelihood) covariance of their
@@ -39,17 +40,37 @@ def _rms_displacement_sq(a, b):
 def energy_score(samples, gt):
   """Energy score (m) of samples (..., N, T, 2) against gt (..., T, 2) -> (...,)."""
   n = samples.shape[-3]
-  to_truth = jnp.mean(jnp.sqrt(_rms_displacement_sq(samples, gt[..., None, :, :])), axis=-1)
-  if n == 1:
+  weights = jnp.full(samples.shape[:-2], 1.0 / n, samples.dtype)
+  return weighted_energy_score(samples, weights, gt, fair=True)
+
+
+def weighted_energy_score(points, weights, gt, fair: bool):
+  """Energy score (m) of a weighted set of trajectories against gt.
+
+  ES = sum_i w_i d(x_i, y) - 1/2 S with S = sum_{i != j} w_i w_j d(x_i, x_j), divided by
+  1 - sum_i w_i^2 when `fair` (samples drawn from a model: with w = 1 / N the unbiased
+  N (N - 1) pair mean) and not divided otherwise (the exact score of the discrete
+  distribution: heads with their p, hypotheses, a point mass). A single point (or one
+  weight of 1) scores d(x, y) either way.
+
+  points (..., N, T, 2), weights (..., N) summing to 1, gt (..., T, 2) -> (...,).
+  """
+  to_truth = jnp.sum(weights * jnp.sqrt(_rms_displacement_sq(points, gt[..., None, :, :])),
+                     axis=-1)
+  if points.shape[-3] == 1:
     return to_truth
-  # pairwise distances from the Gram matrix of the centred samples (B x N x N memory)
-  centred = samples - jnp.mean(samples, axis=-3, keepdims=True)
-  flat = centred.reshape(centred.shape[:-2] + (-1,)) / math.sqrt(samples.shape[-2])
+  # pairwise distances from the Gram matrix of the centred points (B x N x N memory)
+  centred = points - jnp.mean(points, axis=-3, keepdims=True)
+  flat = centred.reshape(centred.shape[:-2] + (-1,)) / math.sqrt(points.shape[-2])
   sq_norm = jnp.sum(flat ** 2, axis=-1)
   gram = jnp.einsum("...id,...jd->...ij", flat, flat, precision=constants.EXACT_MATMUL)
   sq = jnp.maximum(sq_norm[..., :, None] + sq_norm[..., None, :] - 2.0 * gram, 0.0)
-  off_diagonal = 1.0 - jnp.eye(n, dtype=samples.dtype)
-  spread = jnp.sum(jnp.sqrt(sq) * off_diagonal, axis=(-2, -1)) / (n * (n - 1))
+  n = points.shape[-3]
+  pair_w = weights[..., :, None] * weights[..., None, :] * (1.0 - jnp.eye(n, dtype=points.dtype))
+  spread = jnp.sum(jnp.sqrt(sq) * pair_w, axis=(-2, -1))
+  if fair:
+    norm = 1.0 - jnp.sum(weights ** 2, axis=-1)
+    spread = jnp.where(norm > 1e-9, spread / jnp.where(norm > 1e-9, norm, 1.0), 0.0)
   return to_truth - 0.5 * spread
 
 

@@ -1,0 +1,137 @@
+"""Densities of the position at 1..5 s, their NLL, and highest-density prediction regions.
+
+Every model's prediction at a horizon becomes a 2-D mixture of axis-aligned Gaussians
+(`HorizonMixture`, per scenario K components):
+- a `GaussianMixture` (the MDN): its own components at that step (exact density);
+- `WeightedSamples` (cVMDx's samples, its hypotheses, the WTA heads, a point mass): a
+  Gaussian kernel on each point with its weight and one bandwidth per axis (lon, lat), the
+  same for every scenario, chosen per model and horizon on val by the smallest mean NLL
+  over `BANDWIDTH_GRID_M` (`choose_bandwidth`). For a point mass this is a Gaussian
+  around it whose spread is fitted on val.
+
+`nll` is -log p(y) in nats (density per m^2). The highest-density region (HDR) of level
+a is {z : p(z) >= t_a} with mass a; `hdr` draws `HDR_DRAWS` positions z from p and
+returns per scenario u = P(p(Z) > p(y)), the mass of the smallest HDR that holds the
+truth (y lies in the level-a region iff u <= a, so the share of u <= a is the coverage
+and the curve over a the reliability curve), and the area (m^2) of the level-a regions,
+E[1{p(Z) >= t_a} / p(Z)] over the draws.
+"""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cvmdx_jax import constants
+from cvmdx_jax.evaluation.distributions import GaussianMixture, WeightedSamples
+
+HORIZONS_S = (1, 2, 3, 4, 5)
+HORIZON_STEPS = tuple(round(s / constants.DT) - 1 for s in HORIZONS_S)  # future index at s
+LEVELS = (0.5, 0.9, 0.95)  # nominal masses of the reported regions
+BANDWIDTH_GRID_M = tuple(float(h) for h in np.geomspace(0.05, 30.0, 28))
+HDR_DRAWS = 256  # Monte Carlo draws per scenario and horizon for u and the areas
+_CHUNK = 256  # scenarios per vectorised block (bounds memory at M x N x G x G)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HorizonMixture:
+  """means, stds (M, K, 2) m (axis-aligned), weights (M, K): the density at one horizon."""
+
+  means: jax.Array
+  stds: jax.Array
+  weights: jax.Array
+
+
+def at_horizon(dist, step: int, bandwidth=None) -> HorizonMixture:
+  """The density of `dist` at future index `step`; bandwidth (2,) m for `WeightedSamples`."""
+  if isinstance(dist, GaussianMixture):
+    return HorizonMixture(dist.means[:, :, step], dist.stds[:, :, step], dist.weights)
+  points = jnp.asarray(dist.points)[:, :, step]
+  stds = jnp.broadcast_to(jnp.asarray(bandwidth, points.dtype), points.shape)
+  return HorizonMixture(points, stds, jnp.asarray(dist.weights))
+
+
+def _component_log_pdf(mix: HorizonMixture, z):
+  """log w_k + log N(z | mu_k, diag s_k^2): z (M, D, 2) -> (M, D, K)."""
+  d = (z[:, :, None] - mix.means[:, None]) / mix.stds[:, None]
+  log_norm = jnp.sum(jnp.log(mix.stds), axis=-1) + math.log(2.0 * math.pi)  # (M, K)
+  log_w = jnp.log(jnp.maximum(mix.weights, 1e-30))
+  return log_w[:, None] - log_norm[:, None] - 0.5 * jnp.sum(d * d, axis=-1)
+
+
+@jax.jit
+def log_density(mix: HorizonMixture, z):
+  """log p(z) (nats per m^2) of z (M, D, 2) under each scenario's mixture -> (M, D)."""
+  return jax.scipy.special.logsumexp(_component_log_pdf(mix, z), axis=-1)
+
+
+def nll(mix: HorizonMixture, y):
+  """-log p(y) in nats of the true positions y (M, 2) -> (M,)."""
+  return -log_density(mix, jnp.asarray(y)[:, None])[:, 0]
+
+
+@jax.jit
+def _grid_nll(points, weights, y, grid):
+  """Mean over scenarios of -log p(y) for every (h_lon, h_lat) of grid (G,) -> (G, G)."""
+  dev = (y[:, None] - points)  # (M, N, 2)
+  per_axis = (-0.5 * (dev[..., None] / grid) ** 2 - jnp.log(grid)
+              - 0.5 * math.log(2.0 * math.pi))  # (M, N, 2, G)
+  joint = per_axis[:, :, 0, :, None] + per_axis[:, :, 1, None, :]  # (M, N, G, G)
+  log_w = jnp.log(jnp.maximum(weights, 1e-30))[..., None, None]
+  return -jnp.sum(jax.scipy.special.logsumexp(joint + log_w, axis=1), axis=0)
+
+
+def choose_bandwidth(dist: WeightedSamples, gt, step: int,
+                     grid=BANDWIDTH_GRID_M) -> tuple[float, float]:
+  """The (lon, lat) kernel bandwidth (m) of `grid` with the smallest mean NLL of gt[:, step]
+  (call it on val)."""
+  points = np.asarray(dist.points)[:, :, step]
+  weights, y = np.asarray(dist.weights), np.asarray(gt)[:, step]
+  grid = jnp.asarray(grid, jnp.float32)
+  total = sum(_grid_nll(jnp.asarray(points[i:i + _CHUNK]), jnp.asarray(weights[i:i + _CHUNK]),
+                        jnp.asarray(y[i:i + _CHUNK]), grid)
+              for i in range(0, len(y), _CHUNK))
+  lon, lat = np.unravel_index(int(np.argmin(np.asarray(total))), total.shape)
+  return float(grid[lon]), float(grid[lat])
+
+
+def _draw(key, mix: HorizonMixture, n: int):
+  """n positions per scenario from the mixture -> (M, n, 2)."""
+  k_key, z_key = jax.random.split(key)
+  comp = jax.random.categorical(k_key, jnp.log(jnp.maximum(mix.weights, 1e-30))[:, None],
+                                shape=(mix.weights.shape[0], n))
+  pick = lambda a: jnp.take_along_axis(a, comp[..., None], axis=1)
+  return pick(mix.means) + pick(mix.stds) * jax.random.normal(z_key, comp.shape + (2,))
+
+
+@jax.jit
+def _hdr_block(key, mix: HorizonMixture, y, levels):
+  draws = _draw(key, mix, HDR_DRAWS)
+  logp = log_density(mix, draws)  # (M, D)
+  logp_y = log_density(mix, y[:, None])  # (M, 1)
+  u = jnp.mean(logp > logp_y, axis=-1)
+  inv = jnp.sort(-logp, axis=-1)  # descending density: -log p ascending
+  cum_area = jnp.cumsum(jnp.exp(inv), axis=-1) / HDR_DRAWS  # (M, D)
+  index = jnp.clip(jnp.ceil(levels * HDR_DRAWS).astype(jnp.int32) - 1, 0, HDR_DRAWS - 1)
+  return u, jnp.take_along_axis(cum_area, index, axis=-1)
+
+
+def hdr(key: jax.Array, mix: HorizonMixture, y, levels) -> tuple[np.ndarray, np.ndarray]:
+  """Per scenario u = P(p(Z) > p(y)) (M,) and the areas (m^2) of the level-`levels` HDRs.
+
+  levels: (L,) shared or (M, L) per scenario (calibrated levels). Returns u (M,), area (M, L).
+  """
+  y = jnp.asarray(y)
+  m = y.shape[0]
+  levels = np.broadcast_to(np.asarray(levels, np.float32), (m, np.shape(levels)[-1]))
+  us, areas = [], []
+  for i in range(0, m, _CHUNK):
+    part = jax.tree.map(lambda a, i=i: a[i:i + _CHUNK], mix)
+    u, area = _hdr_block(jax.random.fold_in(key, i), part, y[i:i + _CHUNK],
+                         jnp.asarray(levels[i:i + _CHUNK]))
+    us.append(np.asarray(u))
+    areas.append(np.asarray(area))
+  return np.concatenate(us), np.concatenate(areas)
