@@ -53,3 +53,11 @@ def eclipse_sumo():
     if os.environ.get(REQUIRE_SUMO) == "1":
       pytest.fail(f"{message}, and {REQUIRE_SUMO}=1")
     pytest.skip(message)
+
+
+@pytest.fixture(scope="session")
+def scenarios_factory():
+  """`make_scenarios(m, seed=0)` of tests/models/tokenizer_data.py: toy scenarios of three
+  maneuver classes for the tokeniser's model and trainer tests."""
+  from tests.models import tokenizer_data
+  return tokenizer_data.make_scenarios

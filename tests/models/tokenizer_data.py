@@ -1,8 +1,8 @@
-"""Synthetic scenarios for the tokeniser tests: three maneuver classes that differ in the
-ego's lateral motion, with random speeds and randomly present neighbours."""
+"""Synthetic scenarios for the tokeniser tests (tests/models, tests/train): three maneuver
+classes that differ in the ego's lateral motion, with random speeds and randomly present
+neighbours. tests/conftest.py serves `make_scenarios` as the fixture `scenarios_factory`."""
 
 import numpy as np
-import pytest
 
 from cvmdx_jax import constants
 from cvmdx_jax.data import from_arrays
@@ -33,7 +33,3 @@ def make_scenarios(m: int, seed: int = 0):
   return from_arrays(xi=xi, mask=mask, future=zeros, controls=zeros, v0=speed[:, 0, 0],
                      psi0=np.zeros(m), label=label)
 
-
-@pytest.fixture(scope="session")
-def scenarios_factory():
-  return make_scenarios
