@@ -86,6 +86,13 @@ def candidates(rec, config: ExtractionConfig) -> dict:
 
 def windows(rec, rows: np.ndarray) -> dict:
   """Observation windows, futures and start states of the ego rows `rows` (N,)."""
+  future = rec.pos[rows[:, None] + _FUTURE_OFFSETS] - rec.pos[rows][:, None]
+  return {**observed(rec, rows), "future": future.astype(np.float32)}
+
+
+def observed(rec, rows: np.ndarray) -> dict:
+  """What is known at t0 of the ego rows `rows` (N,), each with 74 rows of its track before
+  it: xi, mask, v0, psi0 and the provenance track_id, frame, recording_id."""
   ego_obs = rows[:, None] + _OBS_OFFSETS  # (N, 75)
   origin = rec.pos[rows]  # (N, 2)
   nid = rec.neighbours[rows]  # (N, 8)
@@ -97,9 +104,8 @@ def windows(rec, rows: np.ndarray) -> dict:
   mask = np.concatenate([np.ones_like(valid[:, :1]), valid], 1)
   xy = rec.pos[all_rows] - origin[:, None, None]
   xi = np.concatenate([xy, rec.vel[all_rows]], -1) * mask[..., None]
-  future = rec.pos[rows[:, None] + _FUTURE_OFFSETS] - origin[:, None]
   vel0 = rec.vel[rows]
-  return {"xi": xi.astype(np.float32), "mask": mask, "future": future.astype(np.float32),
+  return {"xi": xi.astype(np.float32), "mask": mask,
           "v0": np.hypot(vel0[:, 0], vel0[:, 1]).astype(np.float32),
           "psi0": np.arctan2(vel0[:, 1], vel0[:, 0]).astype(np.float32),
           "track_id": rec.track_id[rows], "frame": rec.frame[rows],

@@ -1,0 +1,191 @@
+"""Predictions of vehicles in a recording's image frame: the tidy table, temporal
+consistency and accuracy where the future is known.
+
+`predict` runs a `Predictor` on `Observations` with each vehicle's noise drawn from
+(frame, track id), so a vehicle's prediction at a frame does not depend on which other
+vehicles and frames share its batch (`inference.stream` predicts frame by frame, a whole
+recording is predicted in large batches; both give the same draws).
+"""
+
+import dataclasses
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cvmdx_jax.data import frames as frames_lib
+from cvmdx_jax.evaluation import metrics
+from cvmdx_jax.inference import observations as obs_lib
+from cvmdx_jax.storage import atomic
+
+TABLE_COLUMNS = ("recording", "frame", "track_id", "kind", "hypothesis", "probability", "t",
+                 "x", "y")
+TABLE_FORMATS = (".parquet", ".csv.gz")
+
+
+@dataclasses.dataclass(frozen=True)
+class VehiclePredictions:
+  """Predictions of M (vehicle, frame) pairs in the image frame (numpy).
+
+  Attributes:
+    recording_id, frame, track_id: (M,) provenance of each prediction's t0.
+    means: (M, C, 125, 2) hypothesis mean trajectories, image-frame centres, m.
+    probs: (M, C) hypothesis probabilities (0 for empty slots; each row sums to 1).
+    samples: (M, N, 125, 2) sampled trajectories in the image frame, or None.
+    out_of_distribution: (M,) bool, the tokeniser's uncertainty beyond its training range.
+  """
+
+  recording_id: np.ndarray
+  frame: np.ndarray
+  track_id: np.ndarray
+  means: np.ndarray
+  probs: np.ndarray
+  samples: np.ndarray | None
+  out_of_distribution: np.ndarray
+
+  def __len__(self) -> int:
+    return len(self.frame)
+
+  @property
+  def weighted_mean(self) -> np.ndarray:
+    """(M, 125, 2) the hypothesis-weighted mean trajectory, sum_c p_c mean_c."""
+    return np.einsum("mc,mctd->mtd", self.probs, self.means)
+
+  def take(self, index) -> "VehiclePredictions":
+    return VehiclePredictions(**{f.name: None if getattr(self, f.name) is None
+                                 else getattr(self, f.name)[index]
+                                 for f in dataclasses.fields(self)})
+
+
+def noise_ids(observations: obs_lib.Observations) -> np.ndarray:
+  """(M, 2) the (frame, track id) each observation's noise is drawn from."""
+  return np.stack([observations.frame, observations.track_id], -1).astype(np.int64)
+
+
+def predict(predictor, observations: obs_lib.Observations, seed: int = 0,
+            samples: bool = False) -> VehiclePredictions:
+  """`predictor` (a `Predictor`) on `observations` (with an image frame: `data.frames`,
+  `inference.stream`), mapped to the recording's image frame."""
+  out = predictor(observations, seed=seed, noise_ids=noise_ids(observations))
+  hyp = out.hypotheses
+  to_image = lambda xy: obs_lib.to_image(observations, np.asarray(xy))
+  return VehiclePredictions(
+      recording_id=np.asarray(observations.recording_id), frame=np.asarray(observations.frame),
+      track_id=np.asarray(observations.track_id), means=to_image(hyp.means),
+      probs=np.asarray(hyp.probs, np.float64),
+      samples=to_image(out.prediction.trajectories) if samples else None,
+      out_of_distribution=np.asarray(out.out_of_distribution))
+
+
+def table(preds: VehiclePredictions) -> pd.DataFrame:
+  """The tidy table: one row per (prediction, hypothesis or sample, step), columns
+  `TABLE_COLUMNS`; kind "hypothesis" (empty slots left out) or "sample" (probability
+  1 / N); t in s after the prediction's frame; x, y image-frame centres, m."""
+  parts = [_rows(preds, "hypothesis", preds.means, preds.probs)]
+  if preds.samples is not None:
+    n = preds.samples.shape[1]
+    parts.append(_rows(preds, "sample", preds.samples, np.full((len(preds), n), 1.0 / n)))
+  return pd.concat(parts, ignore_index=True)
+
+
+def _rows(preds, kind: str, paths: np.ndarray, probs: np.ndarray) -> pd.DataFrame:
+  m, slot = np.nonzero(probs > 0)
+  steps = paths.shape[2]
+  rep = lambda x: np.repeat(x, steps)
+  xy = paths[m, slot].reshape(-1, 2)
+  return pd.DataFrame({
+      "recording": rep(preds.recording_id[m]), "frame": rep(preds.frame[m]),
+      "track_id": rep(preds.track_id[m]), "kind": kind, "hypothesis": rep(slot),
+      "probability": rep(probs[m, slot]), "t": np.tile(obs_lib.horizon_s(), len(m)),
+      "x": xy[:, 0], "y": xy[:, 1]})
+
+
+def check_table_path(path) -> None:
+  """ValueError naming `path` unless it ends in .parquet (with pyarrow importable) or
+  .csv.gz."""
+  name = str(path)
+  if not name.endswith(TABLE_FORMATS):
+    raise ValueError(f"--out={name}: expected a file ending in {' or '.join(TABLE_FORMATS)}")
+  if name.endswith(".parquet"):
+    try:
+      import pyarrow  # noqa: F401  (optional: Parquet only where it is installed)
+    except ImportError as err:
+      raise ValueError(f"--out={name}: Parquet needs pyarrow, which is not installed; "
+                       "write .csv.gz") from err
+
+
+def write_table(frame: pd.DataFrame, path) -> None:
+  """Writes `frame` atomically as Parquet or gzip-compressed CSV (by `path`'s suffix)."""
+  check_table_path(path)
+  buffer = io.BytesIO()
+  if str(path).endswith(".parquet"):
+    frame.to_parquet(buffer, index=False)
+  else:
+    frame.to_csv(buffer, index=False, float_format="%.4f",
+                 compression={"method": "gzip", "mtime": 0})
+  atomic.write_bytes(Path(path), buffer.getvalue())
+
+
+def temporal_consistency(preds: VehiclePredictions, step: int) -> np.ndarray:
+  """Change between consecutive predictions of one vehicle: for each prediction at frame f
+  with one of the same track at f + `step` (frames, < 125), the mean distance (m) between
+  their hypothesis-weighted means over the steps both cover (times f + step + 1 ..
+  f + 125). Returns (P,) one value per such pair."""
+  mean = preds.weighted_mean
+  horizon = mean.shape[1]
+  if not 0 < step < horizon:
+    raise ValueError(f"temporal_consistency: step {step} not in 1..{horizon - 1}")
+  key = {(int(r), int(t), int(f)): i for i, (r, t, f) in enumerate(
+      zip(preds.recording_id, preds.track_id, preds.frame))}
+  pairs = [(i, key[(r, t, f + step)]) for (r, t, f), i in key.items() if (r, t, f + step) in key]
+  if not pairs:
+    return np.zeros(0)
+  first, second = np.asarray(pairs).T
+  change = np.linalg.norm(mean[first, step:] - mean[second, :horizon - step], axis=-1)
+  return change.mean(-1)
+
+
+def accuracy(preds: VehiclePredictions, future: np.ndarray, known: np.ndarray) -> dict:
+  """ADE / FDE (m) of the hypothesis-weighted mean and minADE / minFDE over the hypotheses
+  against the recorded `future` (M, 125, 2) image frame, over the `known` (M,) ones."""
+  if not known.any():
+    return {"count": 0}
+  gt, hyps, valid = future[known], preds.means[known], preds.probs[known] > 0
+  mean = preds.weighted_mean[known]
+  values = {"ade": metrics.ade(mean, gt), "fde": metrics.fde(mean, gt),
+            "min_ade": metrics.min_ade_k(hyps, gt, valid),
+            "min_fde": metrics.min_fde_k(hyps, gt, valid)}
+  return {"count": int(known.sum()), **{k: float(np.mean(v)) for k, v in values.items()}}
+
+
+def predict_frames(predictor, rec, frames, seed: int = 0, samples: bool = False,
+                   every: int | None = None) -> tuple[VehiclePredictions, dict]:
+  """Every vehicle with 3 s of history at each of `frames` of recording `rec`
+  (`data.highd.Recording`), in batches of `predictor.chunk_size` over vehicles and frames.
+
+  Returns:
+    (predictions, summary): summary = {"predictions", "vehicles", "frames", "seconds",
+    "predictions_per_second", "out_of_distribution", "accuracy" (`accuracy` where the
+    recording holds the 5 s after t0), "consistency_m" (mean and median of
+    `temporal_consistency` at `every` frames, where 0 < every < 125)}.
+  """
+  rows = frames_lib.observable_rows(rec, frames)
+  if len(rows) == 0:
+    raise ValueError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
+  observed = frames_lib.observations(rec, rows)
+  start = time.perf_counter()
+  preds = predict(predictor, observed, seed=seed, samples=samples)
+  seconds = time.perf_counter() - start
+  summary = {"predictions": len(preds), "vehicles": int(len(np.unique(preds.track_id))),
+             "frames": int(len(np.unique(preds.frame))), "seconds": round(seconds, 3),
+             "predictions_per_second": round(len(preds) / seconds, 2),
+             "out_of_distribution": int(preds.out_of_distribution.sum()),
+             "accuracy": accuracy(preds, *frames_lib.futures(rec, rows))}
+  if every is not None and 0 < every < preds.means.shape[2]:
+    change = temporal_consistency(preds, every)
+    summary["consistency_m"] = {"pairs": len(change),
+                                "mean": float(change.mean()) if len(change) else None,
+                                "median": float(np.median(change)) if len(change) else None}
+  return preds, summary
