@@ -44,7 +44,7 @@ test-slow: $(STAMP)
 	CVMDX_REQUIRE_SUMO=1 $(PY) -m pytest -q -m slow
 
 benchmark: $(STAMP)
-	PYTHONPATH=. $(PY) experiments/benchmark_sampling.py  # reads tests/multimodal/synthetic.py
+	$(PY) experiments/benchmark_sampling.py
 	$(PY) experiments/benchmark.py
 	@echo "side by side with the official code: ../shared/reference_bench/README.md, then"
 	@echo "  $(PY) experiments/benchmark.py --reference_json=ours.json --official_json=official.json"

@@ -9,7 +9,7 @@ Sections (`--sections`, in this order):
     ideal ratio is 2x.
   hypotheses: batched JAX `fit_hypotheses` (jitted, warmed up) vs a plain
     scikit-learn per-scenario loop (`sklearn_bic`) on sets of sampled
-    trajectories with 1-3 known modes (`tests/multimodal/synthetic.py`): wall times,
+    trajectories with 1-3 known modes (`cvmdx_jax/multimodal/synthetic.py`): wall times,
     speed-up, share of scenarios where both pick the same C. (The matched-start
     scikit-learn oracle that checks the JAX path number for number is a test:
     tests/multimodal/oracle.py.)
@@ -38,7 +38,7 @@ from cvmdx_jax import diffusion
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
-from tests.multimodal import synthetic
+from cvmdx_jax.multimodal import synthetic
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 

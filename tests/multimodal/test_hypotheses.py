@@ -8,7 +8,7 @@ from scipy import stats
 
 from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
-from tests.multimodal import synthetic
+from cvmdx_jax.multimodal import synthetic
 from tests.multimodal import oracle
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))

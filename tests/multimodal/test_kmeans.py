@@ -13,7 +13,7 @@ from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import kmeans
-from tests.multimodal import synthetic
+from cvmdx_jax.multimodal import synthetic
 
 KMEANS = HypothesisConfig(method="kmeans")
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))

@@ -3,7 +3,7 @@
 `mode_sets` draws highway-like sets of sampled futures around 1, 2 or 3 well-separated
 modes (keep lane, lane change left/right by one 3.5 m lane, keep speed or brake): inputs
 with a known answer for checks and benchmarks of the hypotheses stage
-(`tests/multimodal`, `experiments/benchmark_sampling.py`).
+(`experiments/benchmark_sampling.py`, tests/multimodal). Not on the prediction path.
 """
 
 import numpy as np
