@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install jemalloc demo test test-slow benchmark clean
+.PHONY: install jemalloc demo test test-slow benchmark lint clean
 
 # The pinned dependencies, then this project editable (cvmdx_jax and configs importable from
 # anywhere; edits take effect without reinstalling). setuptools >= 70.1 builds it without
@@ -48,6 +48,12 @@ benchmark: $(STAMP)
 	$(PY) experiments/benchmark.py
 	@echo "side by side with the official code: ../shared/reference_bench/README.md, then"
 	@echo "  $(PY) experiments/benchmark.py --reference_json=ours.json --official_json=official.json"
+
+## Linter and formatter in check mode (pyproject.toml's [tool.ruff], [tool.pyink]); nothing
+## is rewritten. To apply both: `.venv/bin/ruff check --fix . && .venv/bin/pyink .`
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/pyink --check .
 
 clean:
 	rm -rf $(VENV) runs
