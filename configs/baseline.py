@@ -8,7 +8,7 @@ Presets after the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage
 90 s on 2 cores on the `:small` SUMO dataset, compile included). No preset: the demo model
 with more epochs. The epoch is chosen on val (`train.select_metric`;
 `cvmdx_jax.train.baseline`). Any field can be overridden: `--config.train.num_epochs=50`;
-the entry point checks every field once (`cvmdx_jax.runs.config.BaselineConfig`).
+the entry point checks every field once (`cvmdx_jax.config.runs.BaselineRunConfig`).
 """
 
 import ml_collections
@@ -44,7 +44,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   config.train.end_lr_fraction = 0.01  # end of the cosine decay, as a fraction of the peak
   config.train.weight_decay = 1e-4  # AdamW decoupled weight decay
   config.train.grad_clip = 1.0  # global-norm clipping
-  # val read-out whose lowest value picks the epoch (cvmdx_jax.runs.config.SELECT_METRICS)
+  # val read-out whose lowest value picks the epoch (cvmdx_jax.config.runs.SELECT_METRICS)
   config.train.select_metric = "min_ade"
   config.train.checkpoint_every = 10  # epochs between checkpoints (and after the last)
   config.train.keep = 1  # checkpoints kept (the state holds the val-chosen parameters)

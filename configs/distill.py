@@ -18,7 +18,7 @@ guided teacher's 10-step DDIM for a 2-step student); a progressive teacher sampl
 its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Presets after
 the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores). Any field can be overridden:
 `--config.train.num_epochs=20`; the entry point checks every field once
-(`cvmdx_jax.runs.config.DistillConfig`).
+(`cvmdx_jax.config.runs.DistillRunConfig`).
 """
 
 import ml_collections

@@ -9,7 +9,7 @@ no traceback. User errors are
   or out of range (`lower_bound=`, validators), a required flag left out, an unknown
   config preset or field, a config file that cannot be loaded, a config field that is
   not finite or out of range (the ranges live in the typed configs: `typed_config`
-  builds one at parsing, e.g. `runs.config.DiffusionConfig.from_config`), a `*_dir`
+  builds one at parsing, e.g. `config.runs.DiffusionRunConfig.from_config`), a `*_dir`
   config field that is not a directory;
 - in `main`: `app.UsageError` (stray arguments), a `ValueError` raised by this
   repository's code (`DataError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
@@ -42,7 +42,7 @@ from ml_collections import config_flags
 from ml_collections.config_flags.config_flags import is_config_flag
 
 from cvmdx_jax import host_allocator
-from cvmdx_jax.config_dataclass import ConfigFieldError
+from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.models import performance
 
 FLAGS = flags.FLAGS

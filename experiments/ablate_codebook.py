@@ -16,9 +16,9 @@ from absl import app, flags
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
-from cvmdx_jax.storage import atomic
+from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.evaluation import report
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
@@ -49,7 +49,7 @@ def run_one(root: Path, data_dir: str, quantizer: str, q: int) -> dict:
   tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok), run / "tokenizer")
   diff = diffusion_config.get_config(_DIFF.value)
   diff.data_dir, diff.tokenizer_dir = data_dir, str(run / "tokenizer")
-  diffusion_train.train(DiffusionConfig.from_config(diff), run / "diffusion")
+  diffusion_train.train(DiffusionRunConfig.from_config(diff), run / "diffusion")
   return report.run(tokenizer_dir=run / "tokenizer", diffusion_dir=run / "diffusion",
                     data_dir=data_dir, workdir=run / "eval", max_scenarios=_MAX.value,
                     ddpm_scenarios=0, figures_per_class=0)

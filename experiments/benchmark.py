@@ -49,12 +49,14 @@ import jax.numpy as jnp
 from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from cvmdx_jax import cli, diffusion, ego_motion, host_allocator
+from cvmdx_jax.config.denoiser import DenoiserConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
+from cvmdx_jax.config.sampling import SamplingConfig
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import sampling as sampling_lib
-from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig
-from cvmdx_jax.targets import DenoiserConfig
-from cvmdx_jax.storage import atomic
 from cvmdx_jax.models import performance, unet1d
 from cvmdx_jax.models.performance import PerformanceOptions
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill
 
@@ -118,7 +120,7 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_calls(graphdef, params, b: int, config: sampling_lib.SamplingConfig, repeats: int,
+def predict_calls(graphdef, params, b: int, config: SamplingConfig, repeats: int,
                   num_tokens: int = NUM_TOKENS, warmup: int = 1,
                   denoiser_config: DenoiserConfig = DenoiserConfig()) -> tuple[float, float]:
   """`time_calls` of one jitted `predict_batch` call for `b` scenarios: (first, median) s;
@@ -152,7 +154,7 @@ def predict_line(label: str, b: int, seconds: float, gflop: float | None = None,
   return line
 
 
-def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int = 1):
+def train_timing(config: DiffusionRunConfig, batch: int, repeats: int, warmup: int = 1):
   """Median seconds of one jitted training step (AdamW, EMA) at `batch` (`config.model`
   sized for its tokens; the conditioning vector and intent labels its config asks for)."""
   _, init_fn, step_fn = diffusion_train.init_and_step(config, 10_000)
@@ -172,7 +174,7 @@ def train_timing(config: DiffusionConfig, batch: int, repeats: int, warmup: int 
   return _time(one, repeats, warmup)
 
 
-def default_sampling(base: sampling_lib.SamplingConfig) -> sampling_lib.SamplingConfig:
+def default_sampling(base: SamplingConfig) -> SamplingConfig:
   """`base` with the default sampler and steps: --sampler and --steps, else the default
   pipeline's, the last student of `configs.distill.STUDENTS` (sampler "distilled")."""
   sampler = _SAMPLER.value or "distilled"
@@ -181,17 +183,17 @@ def default_sampling(base: sampling_lib.SamplingConfig) -> sampling_lib.Sampling
   return dataclasses.replace(base, sampler=sampler, steps=_STEPS.value or default)
 
 
-def sampled_config(config: DiffusionConfig,
-                   sampling: sampling_lib.SamplingConfig) -> DiffusionConfig:
+def sampled_config(config: DiffusionRunConfig,
+                   sampling: SamplingConfig) -> DiffusionRunConfig:
   """The run `sampling` samples: for the distilled sampler the student of `config` (w as an
   input, `train.distill.student_config`), else `config`."""
   if sampling.sampler != "distilled":
     return config
-  return distill.student_config(config, DistillConfig(steps=sampling.steps))
+  return distill.student_config(config, DistillRunConfig(steps=sampling.steps))
 
 
-def reference_timings(config: DiffusionConfig, num_tokens: int,
-                      sampling: sampling_lib.SamplingConfig, *,
+def reference_timings(config: DiffusionRunConfig, num_tokens: int,
+                      sampling: SamplingConfig, *,
                       big: int = 32, train_batch: int = 256,
                       repeats=REFERENCE_REPEATS) -> dict:
   """Timings in the ../shared/reference_bench schema, seconds (medians).
@@ -225,7 +227,7 @@ def read_timings(path) -> dict:
   for group, field in (("b1", "total"), ("big", "total"), ("big", "b"), ("train", "step")):
     value = timings.get(group, {}).get(field) if isinstance(timings.get(group), dict) else None
     if not isinstance(value, (int, float)) or value <= 0:
-      raise ValueError(f"{path}: field {group}.{field} must be a positive number, got {value!r}")
+      raise UserError(f"{path}: field {group}.{field} must be a positive number, got {value!r}")
   return timings
 
 
@@ -272,9 +274,9 @@ def performance_table(rows: list[tuple[PerformanceOptions, dict]], platform: str
   return "\n".join(lines)
 
 
-def _reference_setup() -> tuple[DiffusionConfig, sampling_lib.SamplingConfig]:
+def _reference_setup() -> tuple[DiffusionRunConfig, SamplingConfig]:
   """The official-size config (configs/diffusion.py:reference) and its default sampling."""
-  config = DiffusionConfig.from_config(diffusion_config.get_config("reference"))
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("reference"))
   return config, default_sampling(config.sampling)
 
 
@@ -326,10 +328,10 @@ def default_main():
   """The timings of the module docstring's first command."""
   for name, preset, big in (("CPU default (:demo)", "demo", _DEMO_BATCH.value),
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
-    config = DiffusionConfig.from_config(diffusion_config.get_config(preset)).with_tokens(
+    config = DiffusionRunConfig.from_config(diffusion_config.get_config(preset)).with_tokens(
         NUM_TOKENS)
     cfg, targets = config.model, config.diffusion
-    ddim = sampling_lib.SamplingConfig()
+    ddim = SamplingConfig()
     fast = default_sampling(ddim)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
     gflop = forward_flops(graphdef, params, cfg.cond_dim) / 1e9

@@ -35,8 +35,10 @@ import threadpoolctl
 
 from cvmdx_jax import cli
 from cvmdx_jax import diffusion
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.sampling import GuidanceConfig, HypothesisConfig
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import synthetic
 
@@ -87,7 +89,7 @@ def sklearn_bic(trajectories, config, tol=1e-3):
   these tiny matrices threads only add overhead.
   """
   if config.scaling != "physical":
-    raise ValueError(f"sklearn_bic: scaling={config.scaling!r}, only 'physical' is timed")
+    raise UserError(f"sklearn_bic: scaling={config.scaling!r}, only 'physical' is timed")
   scale = np.array([config.x_scale, config.y_scale])
   bic = np.empty((len(trajectories), config.c_max))
   with threadpoolctl.threadpool_limits(1):
@@ -155,13 +157,13 @@ def recovery_table(num_sets=1000, seed=1, grid=RECOVERY_GRID):
 
 def _default_unet(seed: int):
   """(model_fn (x_t, t, q) -> v of the default U-Net, its null token, its params)."""
-  config = unet1d.UNetConfig()
+  config = UNetConfig()
   graphdef, params = unet1d.init_unet(config, jax.random.key(seed))
   return (lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)), config.null_token, \
       params
 
 
-def _guided(model, null_token: int, num_samples: int, guidance=diffusion.GuidanceConfig()):
+def _guided(model, null_token: int, num_samples: int, guidance=GuidanceConfig()):
   """The guided v_fn of `model` for `num_samples` samples of one scenario (token 0, delta 5)."""
   return diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), null_token,
                                jnp.full(num_samples, 5.0), diffusion.cosine_schedule(), guidance)
@@ -188,8 +190,8 @@ def benchmark_guidance(num_samples: int = 9, seed: int = 0) -> dict:
   model, null_token, _ = _default_unet(seed)
   schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
   times = {}
-  for name, guidance in (("pair", diffusion.GuidanceConfig()),
-                         ("off", diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0))):
+  for name, guidance in (("pair", GuidanceConfig()),
+                         ("off", GuidanceConfig(w_min=0.0, w_max_base=0.0))):
     v_fn = _guided(model, null_token, num_samples, guidance)
     times[name] = _median_s(jax.jit(lambda k, v_fn=v_fn: diffusion.ddim_sample(
         v_fn, k, shape, schedule, steps=10)), 5)

@@ -21,13 +21,13 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from cvmdx_jax import cli
-from cvmdx_jax.runs import tokens
-from cvmdx_jax.storage import atomic
+from cvmdx_jax.config.runs import TokenizerRunConfig
+from cvmdx_jax.data import dataset
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.evaluation import baselines
-from cvmdx_jax.data import dataset
 from cvmdx_jax.models import quantizer as quantizer_lib
-from cvmdx_jax.runs.config import TokenizerRunConfig
+from cvmdx_jax.runs import tokens
+from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(

@@ -13,7 +13,7 @@ import jax
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
-from cvmdx_jax.runs.config import DistillConfig
+from cvmdx_jax.config.runs import DistillRunConfig
 from cvmdx_jax.train import distill
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Distillation config file.",
@@ -21,7 +21,7 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "Distillation config f
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory of the student.")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
-_RUN = cli.typed_config("config", DistillConfig.from_config)
+_RUN = cli.typed_config("config", DistillRunConfig.from_config)
 
 
 def main(argv):

@@ -13,7 +13,7 @@ lcr, lcl) for data whose class shares differ from its train split's.
 from absl import app, flags
 
 from cvmdx_jax import cli
-from cvmdx_jax.inference import sampling
+from cvmdx_jax.config.sampling import SAMPLERS, SamplingConfig
 from cvmdx_jax.evaluation import report
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
@@ -32,7 +32,7 @@ _MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced subset size (0 =
 _DDPM = flags.DEFINE_integer("ddpm_scenarios", 300,
                              "Scenarios for the single-DDPM-sample baseline (0 = skip).",
                              lower_bound=0)
-_SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
+_SAMPLER = flags.DEFINE_enum("sampler", None, list(SAMPLERS),
                               "Sampler instead of the diffusion run's (e.g. ddim with "
                               "--steps=10: the paper's DDIM-10 on a model whose default is "
                               "dpmpp2m).")
@@ -54,7 +54,7 @@ def main(argv):
                if v is not None}
   if _PRIOR.value is not None:
     try:
-      overrides["intent_prior"] = sampling.SamplingConfig(
+      overrides["intent_prior"] = SamplingConfig(
           intent_prior=tuple(float(w) for w in _PRIOR.value)).intent_prior
     except ValueError as error:
       raise app.UsageError(f"--intent_prior={','.join(_PRIOR.value)}: {error}") from error

@@ -29,12 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import cli
-from cvmdx_jax.storage import atomic
+from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import scoring, sweeps
 from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
 from cvmdx_jax.inference.sampling import Prediction
-from cvmdx_jax.multimodal import HypothesisConfig, fit_hypotheses
+from cvmdx_jax.multimodal import fit_hypotheses
+from cvmdx_jax.storage import atomic
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
@@ -62,7 +64,7 @@ def _method(spec: str, base: HypothesisConfig) -> HypothesisConfig:
   try:
     return sweeps.hypothesis_config(spec, base)
   except ValueError as e:
-    raise ValueError(f"--methods: {e}") from None
+    raise UserError(f"--methods: {e}") from None
 
 
 def score(trajectories, config: HypothesisConfig, data) -> dict:
@@ -104,7 +106,7 @@ def sweep() -> tuple[list[dict], str, int]:
   if saved and saved.is_file():
     samples = jnp.asarray(np.load(saved)["trajectories"])
     if samples.shape[:2] != (len(data), counts[-1]):
-      raise ValueError(f"--samples_file {saved}: shape {samples.shape} does not match "
+      raise UserError(f"--samples_file {saved}: shape {samples.shape} does not match "
                        f"{len(data)} scenarios x {counts[-1]} samples")
   else:
     full = dataclasses.replace(predictor, sampling=dataclasses.replace(
@@ -133,14 +135,14 @@ def sweep() -> tuple[list[dict], str, int]:
 
 def main(argv):
   if len(argv) > 1:
-    raise ValueError(f"hypothesis_sweep: unexpected arguments {argv[1:]}")
+    raise UserError(f"hypothesis_sweep: unexpected arguments {argv[1:]}")
   missing = [f.name for f in (_TOKENIZER, _DIFFUSION, _DATA, _OUT) if not f.value]
   if missing:
-    raise ValueError(f"hypothesis_sweep: flags {missing} are required")
+    raise UserError(f"hypothesis_sweep: flags {missing} are required")
   rows, note, predictor_n = sweep()
   ref = [r for r in rows if r["method"] == "bic" and r["num_samples"] == predictor_n]
   if not ref:
-    raise ValueError(f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
+    raise UserError(f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
                      "evaluated; include it in --methods and --num_samples")
   choice = sweeps.choose_hypotheses(rows, ref[0], _TOL.value, _MAX_N.value)
   out = Path(_OUT.value)

@@ -26,10 +26,12 @@ import jax
 import jax.numpy as jnp
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import cli, targets
+from cvmdx_jax import cli
+from cvmdx_jax.config.denoiser import PAPER_SCALE
+from cvmdx_jax.config.runs import DiffusionRunConfig
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import official_import
 from cvmdx_jax.runs import fingerprints, layout, loaders
-from cvmdx_jax.runs.config import DiffusionConfig
 from cvmdx_jax.storage import checkpointing, checksums, locking
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
@@ -46,7 +48,7 @@ cli.output_dirs("workdir")
 _TMP_PREFIX = ".import."  # the run is written into <workdir>/.import.*, then moved in
 
 
-def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+def write_run(workdir: Path, config: DiffusionRunConfig, params, fingerprint: dict) -> None:
   """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: config.json
   and checkpoints/1 holding {params, ema_params} (both the imported weights) and step 0,
   with metadata {"fingerprint": fingerprint}."""
@@ -57,7 +59,7 @@ def write_run(workdir: Path, config: DiffusionConfig, params, fingerprint: dict)
     ckpts.save(1, state, {"fingerprint": fingerprint})
 
 
-def _write_once(workdir: Path, config: DiffusionConfig, params, fingerprint: dict) -> None:
+def _write_once(workdir: Path, config: DiffusionRunConfig, params, fingerprint: dict) -> None:
   """`write_run` into a new or empty `workdir`, held, via a temporary directory inside
   it; on failure nothing but the lock file is left. A `.import.*` directory left by an
   import that was killed is removed first (the lock says no import is running)."""
@@ -66,7 +68,7 @@ def _write_once(workdir: Path, config: DiffusionConfig, params, fingerprint: dic
       shutil.rmtree(stale)
     found = sorted(p.name for p in workdir.iterdir() if not p.name.startswith(locking.LOCK_NAME))
     if found:
-      raise ValueError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
+      raise UserError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
     tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=workdir))
     moved = []
     try:
@@ -93,21 +95,21 @@ def main(argv):
     cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
                                                 num_heads=_NUM_HEADS.value)
   except official_import.NumHeadsError as e:
-    raise ValueError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
+    raise UserError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
   if _TOKENIZER_DIR.value:
     bundle = loaders.load_tokenizer(_TOKENIZER_DIR.value)
     if bundle.config.quantizer.codebook_size != cfg.num_tokens:
-      raise ValueError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
+      raise UserError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
                        f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
                        f"{cfg.num_tokens}")
     tokens_meta = {"checkpoint": bundle.checkpoint.to_dict()}  # fingerprint, step, params_id
     config.tokenizer_dir = _TOKENIZER_DIR.value
-  config.diffusion.control_scale = targets.PAPER_SCALE  # the official (4, 0.7)
+  config.diffusion.control_scale = PAPER_SCALE  # the official (4, 0.7)
   config.sampling.mode = "official"
-  config = dataclasses.replace(DiffusionConfig.from_config(config), model=cfg)
+  config = dataclasses.replace(DiffusionRunConfig.from_config(config), model=cfg)
   digest = checksums.file_sha256(checkpoint)[:16]
   fingerprint = fingerprints.diffusion(config, f"official:{digest}", tokens_meta)
   _write_once(workdir, config, params, fingerprint)

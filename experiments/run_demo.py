@@ -3,10 +3,11 @@ baseline) -> report.
 
   make demo        (= .venv/bin/python experiments/run_demo.py --workdir=runs/demo)
 
-Writes runs/demo/{data, tokenizer, diffusion, student_*, baseline}/ and two reports in the
+Writes runs/demo/{data, tokenizer, diffusion, student_*, baseline, mdn}/ and two reports in the
 same schema of the last student of `--distill_steps` (the guided denoiser itself where that
 is empty), each with the rows of the multiple-choice MLP baseline trained on the same train
-split and tokens (`configs/baseline.py`, at most 90 s of the demo): the
+split and tokens (`configs/baseline.py`, at most 90 s of the demo; the mixture density
+baseline, `configs/mdn.py`, trains beside it in as long): the
 test split's (metrics.json, results.md, predictions_<class>.png, kl_vs_usage.png) and
 the held-out road's (metrics_test_ood.json, results_test_ood.md, *_test_ood.png; the
 single-DDPM baseline there only with `--ood_ddpm_scenarios`). A dataset without a
@@ -25,15 +26,20 @@ from configs import baseline as baseline_config
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import distill as distill_config
+from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
-from cvmdx_jax.evaluation import report
-from cvmdx_jax.data import dataset as dataset_lib
-from cvmdx_jax.runs.config import (BaselineConfig, DiffusionConfig, DistillConfig,
+from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
                                    TokenizerRunConfig)
+from cvmdx_jax.config.mdn import MDNRunConfig
+from cvmdx_jax.data import dataset as dataset_lib
+from cvmdx_jax.data import sumo_plan
+from cvmdx_jax.evaluation import animation, report
+from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.train import baseline as baseline_train
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill as distill_train
+from cvmdx_jax.train import mdn as mdn_train
 from cvmdx_jax.train import tokenizer as tokenizer_train
 
 _WORKDIR = flags.DEFINE_string("workdir", "runs/demo", "Where everything is written.")
@@ -47,6 +53,7 @@ _DISTILL_STEPS = flags.DEFINE_list(
     "by the guided denoiser (guided_progressive), then progressive students, each for "
     "half its teacher's steps; empty: the report samples the guided denoiser.")
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
+_MDN = flags.DEFINE_string("mdn_preset", "demo", "configs/mdn.py preset.")
 _SEED = flags.DEFINE_integer("seed", 0, "Training seed of the tokeniser, denoiser, students "
                              "and baseline (`config.seed` of each; the data stay the same).",
                              lower_bound=0)
@@ -62,6 +69,7 @@ cli.presets("tokenizer_preset", tokenizer_config.get_config)
 cli.presets("diffusion_preset", diffusion_config.get_config)
 cli.presets("distill_preset", distill_config.get_config)
 cli.presets("baseline_preset", baseline_config.get_config)
+cli.presets("mdn_preset", mdn_config.get_config)
 cli.int_list("distill_steps", 1)
 flags.register_validator(
     "distill_steps", lambda v: all(int(b) * 2 == int(a) for a, b in zip(v, v[1:])),
@@ -77,7 +85,7 @@ def main(argv):
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   root = Path(_WORKDIR.value)
   data_dir, tok_dir, diff_dir = root / "data", root / "tokenizer", root / "diffusion"
-  base_dir = root / "baseline"
+  base_dir, mdn_dir = root / "baseline", root / "mdn"
   start = time.perf_counter()
 
   _stage(f"1/5 dataset (SUMO, preset {_DATA.value}) -> {data_dir}", start)
@@ -93,7 +101,7 @@ def main(argv):
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
   diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
   diff_cfg.seed = _SEED.value
-  diffusion_train.train(DiffusionConfig.from_config(diff_cfg), diff_dir)
+  diffusion_train.train(DiffusionRunConfig.from_config(diff_cfg), diff_dir)
 
   teacher = diff_dir
   for i, steps in enumerate(_DISTILL_STEPS.value):
@@ -106,14 +114,20 @@ def main(argv):
     dist_cfg.guided_progressive, dist_cfg.seed = i == 0, _SEED.value
     if i:  # a halving: the student regresses two steps of its teacher
       dist_cfg.teacher_substeps = 2
-    distill_train.train(DistillConfig.from_config(dist_cfg), student)
+    distill_train.train(DistillRunConfig.from_config(dist_cfg), student)
     teacher = student
 
   _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
   base_cfg = baseline_config.get_config(_BASELINE.value)
   base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
   base_cfg.seed = _SEED.value
-  baseline_train.train(BaselineConfig.from_config(base_cfg), base_dir)
+  baseline_train.train(BaselineRunConfig.from_config(base_cfg), base_dir)
+
+  _stage(f"4b/5 mixture density baseline (preset {_MDN.value}) -> {mdn_dir}", start)
+  mdn_cfg = mdn_config.get_config(_MDN.value)
+  mdn_cfg.data_dir, mdn_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
+  mdn_cfg.seed = _SEED.value
+  mdn_train.train(MDNRunConfig.from_config(mdn_cfg), mdn_dir)
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
@@ -125,6 +139,13 @@ def main(argv):
     suffix = report.split_suffix(split)
     files += [f"{root}/metrics{suffix}.json", f"{root}/results{suffix}.md"]
     print(f"\n{split}:\n" + (root / f"results{suffix}.md").read_text())
+  data_cfg = dataset_config.get_config(_DATA.value)
+  held_out = sumo_plan.split_ids(data_cfg.sumo)["test_ood"] if data_cfg.source == "sumo" else []
+  if held_out:  # the scene, moving: 3 s of the held-out road with every vehicle's hypotheses
+    clip = root / "scene_test_ood.gif"
+    animation.write_clip(Predictor.load(tok_dir, teacher), data_dir / "recordings",
+                         held_out[0], clip)
+    files.append(str(clip))
   print(f"done in {time.perf_counter() - start:.0f} s; reports: {', '.join(files)}, "
         f"{root}/*.png", flush=True)
 

@@ -11,7 +11,7 @@ import jax
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
-from cvmdx_jax.runs.config import BaselineConfig
+from cvmdx_jax.config.runs import BaselineRunConfig
 from cvmdx_jax.train import baseline
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Baseline config file.",
@@ -19,7 +19,7 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "Baseline config file.
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
-_RUN = cli.typed_config("config", BaselineConfig.from_config)
+_RUN = cli.typed_config("config", BaselineRunConfig.from_config)
 
 
 def main(argv):

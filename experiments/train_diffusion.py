@@ -10,7 +10,7 @@ import jax
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
-from cvmdx_jax.runs.config import DiffusionConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.train import diffusion
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
@@ -18,7 +18,7 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
-_RUN = cli.typed_config("config", DiffusionConfig.from_config)
+_RUN = cli.typed_config("config", DiffusionRunConfig.from_config)
 
 
 def main(argv):

@@ -12,7 +12,7 @@ from ml_collections import config_flags
 import jax
 
 from cvmdx_jax import cli, sharding
-from cvmdx_jax.runs.config import TokenizerRunConfig
+from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
-                                        ConfigFieldError, check_ranges)
-from cvmdx_jax.storage import atomic, identity, locking
+from cvmdx_jax.config.fields import (BELOW_ONE, ConfigFieldError, FRACTION, NON_NEGATIVE, POSITIVE,
+                                     SEED, check_ranges)
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.storage import atomic, identity, locking
 
 SOURCES = ("sumo", "highd", "cvmd_mat")
 SPLITS = sumo_plan.SPLITS  # train, val, test, test_ood, val_ood

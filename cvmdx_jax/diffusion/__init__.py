@@ -1,8 +1,7 @@
 """Diffusion maths: schedules, parameterisations, loss, guidance and samplers."""
 
-from cvmdx_jax.diffusion.guidance import (GuidanceConfig, combine_eps, cond_uncond_v_fn,
-                                          guidance_weight, guided_eps, guided_v_fn,
-                                          official_step_weights)
+from cvmdx_jax.diffusion.guidance import (combine_eps, cond_uncond_v_fn, guidance_weight,
+                                          guided_eps, guided_v_fn, official_step_weights)
 from cvmdx_jax.diffusion.losses import v_loss
 from cvmdx_jax.diffusion.param import (eps_from_v, eps_from_x0, q_sample, v_from_eps,
                                        v_from_x0_eps, x0_from_eps, x0_from_v)
@@ -11,7 +10,7 @@ from cvmdx_jax.diffusion.schedule import (Schedule, cosine_schedule, ddim_timest
                                           official_ddim_timesteps)
 
 __all__ = [
-    "GuidanceConfig", "Schedule", "combine_eps", "cond_uncond_v_fn", "cosine_schedule",
+    "Schedule", "combine_eps", "cond_uncond_v_fn", "cosine_schedule",
     "ddim_sample", "ddim_timesteps", "ddpm_sample", "eps_from_v", "eps_from_x0",
     "guidance_weight", "guided_eps", "guided_v_fn", "official_ddim_sample",
     "official_ddim_timesteps", "official_step_weights", "q_sample", "v_from_eps",

@@ -11,46 +11,12 @@ noisiest step, w_max at the last): `direction="official"` uses t -> T - t.
 index, without delta), for `samplers.official_ddim_sample`.
 """
 
-import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.sampling import GuidanceConfig
 from cvmdx_jax.diffusion import param
-
-FORMS = ("paper", "official")
-
-
-@dataclasses.dataclass(frozen=True)
-class GuidanceConfig:
-  """Static guidance settings (paper defaults).
-
-  Attributes:
-    w_min: guidance weight floor.
-    w_max_base: guidance weight ceiling for a scenario with delta = 0.
-    t_c: Mahalanobis distance at which w_max reaches 0.
-    form: "paper" (extrapolation (1+w) c - w u) or "official" (u + w (c - u)).
-    direction: "paper" (w grows with t) or "official" (w shrinks with t).
-  """
-
-  w_min: float = 0.1
-  w_max_base: float = 1.0
-  t_c: float = 50.0
-  form: str = "paper"
-  direction: str = "paper"
-
-  def __post_init__(self):
-    check_ranges(self, {"w_min": NON_NEGATIVE, "w_max_base": NON_NEGATIVE, "t_c": POSITIVE})
-    for name in ("form", "direction"):
-      if getattr(self, name) not in FORMS:
-        raise ValueError(f"guidance.{name} must be one of {FORMS}, got {getattr(self, name)!r}")
-
-  @property
-  def off(self) -> bool:
-    """w(t, delta) = 0 everywhere: the guided v is one branch (the conditional in the
-    "paper" form, the unconditional in the "official" one)."""
-    return self.w_min == 0 and self.w_max_base == 0
 
 
 def guidance_weight(t, delta, num_steps: int, config: GuidanceConfig = GuidanceConfig()):

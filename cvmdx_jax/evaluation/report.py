@@ -23,14 +23,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import constants
-from cvmdx_jax.runs import loaders
-from cvmdx_jax.runs import tokens as tokens_lib
-from cvmdx_jax.storage import atomic, checksums, locking
+from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, learned_baseline, scoring
-from cvmdx_jax.multimodal import HypothesisConfig
 from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.runs import loaders
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.storage import atomic, checksums, locking
 
 
 def _sampling_meta(predictor: Predictor) -> dict:

@@ -8,7 +8,8 @@ scenario of the hypothesis step alone).
 
 import dataclasses
 
-from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.config.sampling import HypothesisConfig
+from cvmdx_jax.errors import UserError
 
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score",
            "nll_final", "ece")
@@ -21,7 +22,7 @@ def hypothesis_config(spec: str, base: HypothesisConfig) -> HypothesisConfig:
     return dataclasses.replace(base, method="bic")
   if method == "kmeans":
     return dataclasses.replace(base, method="kmeans", endpoint_weight=float(weight or 0.0))
-  raise ValueError(f"hypothesis method {spec!r} is not 'bic' or 'kmeans:<endpoint_weight>'")
+  raise UserError(f"hypothesis method {spec!r} is not 'bic' or 'kmeans:<endpoint_weight>'")
 
 
 def choose_hypotheses(rows: list[dict], reference: dict, tolerance: float,

@@ -34,12 +34,11 @@ import numpy as np
 from tqdm import tqdm
 
 from cvmdx_jax import ego_motion, sharding
+from cvmdx_jax.config.sampling import SamplingConfig, check_sampler
 from cvmdx_jax.data import highd
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
-from cvmdx_jax.inference.observations import Observations
-from cvmdx_jax.inference.sampling import (Prediction, SamplingConfig, check_sampler,
-                                          predict_batch)
+from cvmdx_jax.inference.sampling import Prediction, predict_batch
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
@@ -147,13 +146,6 @@ def _predict(tokenizer: loaders.TokenizerBundle, denoiser: loaders.Denoiser, xi,
   return pred, q, delta
 
 
-def _fold_ids(key, ids):
-  """fold_in of `key` with each of `ids` (K,) in turn."""
-  for k in range(ids.shape[0]):
-    key = jax.random.fold_in(key, ids[k])
-  return key
-
-
 @dataclasses.dataclass(frozen=True)
 class Predictor:
   """Trained cVMDx: tokeniser bundle + denoiser + sampling settings.
@@ -207,22 +199,9 @@ class Predictor:
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size,
                delta_limit=float(np.max(train.delta)))
 
-  def __call__(self, scenarios: Scenarios | Observations, seed: int = 0,
-               noise_ids=None) -> PredictorOutput:
-    """Predicts every scenario; see the module docstring; inputs as `check_inputs`.
-
-    `scenarios`: `Scenarios` or `Observations` (what is known at t0: fields xi, mask, v0,
-    psi0). `noise_ids`: (M, K) ints in [0, 2**32); scenario i draws from fold_in(...
-    fold_in(key(seed), noise_ids[i, 0]) ..., noise_ids[i, K - 1]); None = (i,), the
-    module docstring's. (frame, track_id) makes a vehicle's draw at a frame independent
-    of the other vehicles and frames predicted with it (`inference.stream`).
-    """
+  def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
+    """Predicts every scenario; see the module docstring; inputs as `check_inputs`."""
     check_inputs(scenarios, seed)
-    ids = np.arange(len(scenarios))[:, None] if noise_ids is None else np.asarray(noise_ids)
-    if ids.ndim != 2 or len(ids) != len(scenarios) or np.any((ids < 0) | (ids >= 2**32)):
-      raise ValueError(f"noise_ids: expected (M, K) ints in [0, 2**32) with M = "
-                       f"{len(scenarios)}, got shape {ids.shape}")
-    ids = ids.astype(np.uint32)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
     m = len(scenarios)
@@ -235,9 +214,9 @@ class Predictor:
       inputs = {"xi": np.asarray(scenarios.xi[idx], np.float32),
                 "mask": np.asarray(scenarios.mask[idx], bool),
                 "v0": np.asarray(scenarios.v0[idx], np.float32),
-                "psi0": np.asarray(scenarios.psi0[idx], np.float32), "index": ids[idx]}
+                "psi0": np.asarray(scenarios.psi0[idx], np.float32), "index": idx}
       padded, weight = sharding.pad_batch(inputs, chunk)
-      keys = jax.vmap(functools.partial(_fold_ids, base))(jnp.asarray(padded.pop("index")))
+      keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.asarray(padded.pop("index")))
       batch = sharding.shard_batch({**padded, "keys": keys}, mesh)
       out = _predict(self.tokenizer, self.denoiser, batch["xi"], batch["mask"], batch["v0"],
                      batch["psi0"], batch["keys"], schedule, config=self.sampling)

@@ -13,72 +13,19 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants, ego_motion, targets, vmm
-from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, ConfigFieldError, check_ranges
-from cvmdx_jax.diffusion import (GuidanceConfig, Schedule, cond_uncond_v_fn, ddim_sample,
-                                 ddpm_sample, guidance_weight, guided_v_fn,
-                                 official_ddim_sample)
+from cvmdx_jax.config.denoiser import DenoiserConfig
+from cvmdx_jax.config.fields import ConfigFieldError
+from cvmdx_jax.config.sampling import SamplingConfig, check_sampler
+from cvmdx_jax.diffusion import (Schedule, cond_uncond_v_fn, ddim_sample, ddpm_sample,
+                                 guidance_weight, guided_v_fn, official_ddim_sample)
 from cvmdx_jax.diffusion.distillation import distilled_sample, student_cond
 from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models.unet1d import apply_intent, apply_unet
-from cvmdx_jax.multimodal import HypothesisConfig, Hypotheses, fit_hypotheses
+from cvmdx_jax.multimodal import Hypotheses, fit_hypotheses
 
-SAMPLERS = ("ddim", "ddpm", "dpmpp2m", "distilled")
-MODES = ("paper", "official")
 # of `predict_batch` under jax.jit
 STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")
-
-
-@dataclasses.dataclass(frozen=True)
-class SamplingConfig:
-  """Static sampling settings (paper defaults); what the denoiser itself is (control scale,
-  conditioning) is its `targets.DenoiserConfig`.
-
-  Attributes:
-    num_samples: N samples per scenario.
-    sampler: "ddim" (S steps), "ddpm" (all T steps, the cVMD way) or "dpmpp2m"
-      (DPM-Solver++(2M) over the same guided ODE as DDIM, S network evaluations:
-      `diffusion.solvers.dpmpp_2m_sample`; beyond the paper) or "distilled" (a distilled
-      student's deterministic DDIM, S evaluations: `diffusion.distillation`; needs a
-      denoiser with `guidance_input`). A guidance student (`DenoiserConfig.guidance_input`)
-      takes w as an input: every sampler then spends one evaluation per step, not two.
-    mode: "paper" (the paper's equations) or "official" (the official code's guided
-      DDIM loop: `diffusion.official_ddim_sample`, S - 1 updates, weights from
-      guidance.w_min to guidance.w_max_base over the step index, no delta).
-    steps: S, DDIM, DPM-Solver++(2M) or distilled steps (guided evaluations per sample).
-    eta: DDIM noise (0 = deterministic).
-    clip_x0: clip predicted x0 to [-clip_x0, clip_x0] in normalised units (the
-      official sampler clips to [-1, 1]); None or 0 = no clipping.
-    guidance: `GuidanceConfig`.
-    hypotheses: `HypothesisConfig`.
-    intent_prior: weights (keep lane, lcr, lcl) that multiply an intent conditioning's
-      class probabilities before its draws, renormalised: the ratio of the class shares
-      where the model is used to those of its train split (all 1: as trained).
-  """
-
-  num_samples: int = 9
-  sampler: str = "ddim"
-  mode: str = "paper"
-  steps: int = 10
-  eta: float = 0.0
-  clip_x0: float | None = 1.0
-  guidance: GuidanceConfig = GuidanceConfig()
-  hypotheses: HypothesisConfig = HypothesisConfig()
-  intent_prior: tuple[float, ...] = (1.0,) * constants.NUM_CLASSES
-
-  def __post_init__(self):
-    object.__setattr__(self, "intent_prior", tuple(float(w) for w in self.intent_prior))
-    check_ranges(self, {"num_samples": POSITIVE, "steps": POSITIVE, "eta": NON_NEGATIVE,
-                        "clip_x0": NON_NEGATIVE, "intent_prior": POSITIVE})
-    if len(self.intent_prior) != constants.NUM_CLASSES:
-      raise ConfigFieldError("intent_prior", self.intent_prior,
-                             f"needs {constants.NUM_CLASSES} weights (keep lane, lcr, lcl)")
-    if self.clip_x0 == 0:  # the config's "0 = off"
-      object.__setattr__(self, "clip_x0", None)
-    if self.sampler not in SAMPLERS:
-      raise ValueError(f"sampling.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
-    if self.mode not in MODES or (self.mode == "official" and self.sampler != "ddim"):
-      raise ValueError(f"sampling.mode must be one of {MODES} ('official' with sampler "
-                       f"'ddim'), got {self.mode!r} with {self.sampler!r}")
 
 
 @jax.tree_util.register_dataclass
@@ -97,17 +44,6 @@ class Prediction:
   trajectories: jax.Array
   mean: jax.Array
   hypotheses: Hypotheses
-
-
-def check_sampler(config: SamplingConfig, guidance_input: bool) -> None:
-  """ValueError where `config` cannot sample the denoiser: the official mode needs the
-  guided pair, the distilled sampler a guidance student."""
-  if guidance_input and config.mode == "official":
-    raise ValueError("sampling.mode 'official' runs the guided pair; a distilled denoiser "
-                     "(guidance_input) has none: use mode 'paper'")
-  if config.sampler == "distilled" and not guidance_input:
-    raise ValueError("sampling.sampler 'distilled' needs a distilled denoiser "
-                     "(experiments/distill.py); this one is not")
 
 
 def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null_token: int,
@@ -167,7 +103,7 @@ def draw_intents(logits, key, n: int):
 
 def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, schedule: Schedule,
                   null_token: int, config: SamplingConfig = SamplingConfig(),
-                  denoiser_config: targets.DenoiserConfig = targets.DenoiserConfig()
+                  denoiser_config: DenoiserConfig = DenoiserConfig()
                   ) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.
 
@@ -183,7 +119,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
     schedule: the diffusion `Schedule` the model was trained with.
     null_token: the unconditional token (Q).
     config: `SamplingConfig`.
-    denoiser_config: the trained denoiser's `targets.DenoiserConfig` (control scale,
+    denoiser_config: the trained denoiser's `DenoiserConfig` (control scale,
       conditioning, residual decay).
 
   Returns:
@@ -195,7 +131,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
                            "this denoiser draws no maneuver classes (it was trained without "
                            "diffusion.intent_conditioning): leave it at 1, 1, 1")
   if conditioning != "token" and ego is None:
-    raise ValueError(f"predict_batch: conditioning {conditioning!r} needs ego features")
+    raise UserError(f"predict_batch: conditioning {conditioning!r} needs ego features")
   film = ego if ego_motion.uses_film(conditioning) else None
   if denoiser_config.intent_conditioning:
     keys, intent_keys = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)

@@ -15,53 +15,17 @@ Functional form (`cvmdx_jax.models.functional`): `init` -> (graphdef, params),
 2) m, probabilities (B, K)).
 """
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants, ego_motion, targets, vmm
-from cvmdx_jax.config_dataclass import NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.models import MultipleChoiceConfig
 from cvmdx_jax.models import functional
 
 OUTPUT_INIT_SCALE = 1e-2  # variance scale of the control heads' init: heads start near
 # the residual base, yet differ, so that winner-takes-all assigns them different scenarios
-
-
-@dataclasses.dataclass(frozen=True)
-class MultipleChoiceConfig:
-  """Static sizes of the multiple-choice MLP.
-
-  Attributes:
-    num_tokens: Q, the codebook size of the tokeniser whose tokens it reads (0 in a
-      run config until the trainer sets it from the tokens, `BaselineConfig.with_tokens`).
-    num_hypotheses: K heads (= C_max of cVMDx's hypotheses).
-    token_dim: width of the token embedding.
-    hidden: widths of the hidden layers (GELU).
-    control_scale: [a_x m/s^2, yaw rate rad/s] per unit of a head's output.
-    residual_decay_s: (tau_a, tau_r) s of the residual base (`ego_motion.residual_controls`).
-  """
-
-  num_tokens: int = 60
-  num_hypotheses: int = 3
-  token_dim: int = 16
-  hidden: tuple[int, ...] = (256, 256)
-  control_scale: tuple[float, float] = (4.0, 0.1)
-  residual_decay_s: tuple[float, float] = (3.0, 0.1)
-
-  def __post_init__(self):
-    check_ranges(self, {"num_tokens": NON_NEGATIVE, **dict.fromkeys(
-        ("num_hypotheses", "token_dim", "hidden", "control_scale", "residual_decay_s"),
-        POSITIVE)})
-    if len(self.control_scale) != 2 or len(self.residual_decay_s) != 2:
-      raise ValueError("control_scale and residual_decay_s need two values (a_x, yaw "
-                       f"rate), got {self.control_scale}, {self.residual_decay_s}")
-
-  @property
-  def input_dim(self) -> int:
-    """Width of the MLP input: ego features, log(1 + delta), token embedding."""
-    return ego_motion.NUM_FEATURES + 1 + self.token_dim
 
 
 class MultipleChoiceMLP(nnx.Module):
@@ -78,11 +42,19 @@ class MultipleChoiceMLP(nnx.Module):
     self.logits = nnx.Linear(widths[-1], config.num_hypotheses, rngs=rngs)
 
   def __call__(self, q, delta, ego):
+    return self.heads(self.features(q, delta, ego))
+
+  def features(self, q, delta, ego):
+    """The last hidden layer (B, hidden[-1]) of q (B,), delta (B,), ego (B, F)."""
     h = jnp.concatenate([ego, jnp.log1p(jnp.maximum(delta, 0.0))[:, None],
                          self.token_embed(q)], axis=-1)
     for layer in self.layers:
       h = jax.nn.gelu(layer(h))
-    controls = self.controls(h).reshape(len(q), self.config.num_hypotheses, constants.T_PRED, 2)
+    return h
+
+  def heads(self, h):
+    """(controls (B, K, 125, 2), logits (B, K)) of the hidden features h (B, hidden[-1])."""
+    controls = self.controls(h).reshape(len(h), self.config.num_hypotheses, constants.T_PRED, 2)
     return controls, self.logits(h)
 
 

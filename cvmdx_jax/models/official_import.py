@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import torch_zip
 from cvmdx_jax.models import unet1d
 
@@ -36,7 +38,7 @@ OFFICIAL_GROUPS = 32  # the official GroupNorm32 always uses 32 groups
 _CANDIDATE_KEYS = ("label_emb.weight", "time_embed.0.weight", "input_blocks.0.0.weight")
 
 
-class OfficialCheckpointError(ValueError):
+class OfficialCheckpointError(UserError):
   """A checkpoint that is not a state dict of the official cVMDx U-Net."""
 
 
@@ -114,7 +116,7 @@ def _block_indices(state, prefix: str) -> list[int]:
 
 
 def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEADS,
-                where: str = "state dict") -> unet1d.UNetConfig:
+                where: str = "state dict") -> UNetConfig:
   """The `UNetConfig` of an official state dict: Q from the label embedding, widths,
   levels, residual blocks per level and attention levels from the layer shapes.
 
@@ -169,7 +171,7 @@ def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEAD
     raise NumHeadsError(f"{where}: the attention blocks have {widths} channels, not all "
                         f"divisible by {num_heads} heads")
   try:
-    return unet1d.UNetConfig(num_tokens=rows - 1, base_channels=ch, channel_mult=tuple(mults),
+    return UNetConfig(num_tokens=rows - 1, base_channels=ch, channel_mult=tuple(mults),
                              num_res_blocks=per_level, emb_mult=emb // ch,
                              attention_levels=tuple(attention), num_heads=num_heads,
                              groups=OFFICIAL_GROUPS, dropout=0.0)
@@ -214,7 +216,7 @@ def _attention(state, p: str, heads: int, get) -> dict[str, tuple]:
   return out
 
 
-def _converted(state, cfg: unet1d.UNetConfig) -> tuple[dict[str, tuple], set[str]]:
+def _converted(state, cfg: UNetConfig) -> tuple[dict[str, tuple], set[str]]:
   """{our parameter path: (official name, our shape -> torch shape, array)} and the
   official names used; each official parameter checked to have the dimensions its
   layer needs before its layout is changed."""
@@ -295,7 +297,7 @@ def _path_name(path) -> str:
   return ".".join(parts[:-1] if parts and parts[-1] == "value" else parts)
 
 
-def params_from_state_dict(state: dict[str, np.ndarray], cfg: unet1d.UNetConfig,
+def params_from_state_dict(state: dict[str, np.ndarray], cfg: UNetConfig,
                            where: str = "state dict"):
   """The U-Net parameters (the pytree of `unet1d.init_unet(cfg, key)[1]`); every
   shape is compared with the architecture's (`jax.eval_shape`) before any is built.

@@ -21,45 +21,15 @@ For VQ, `update_codebook` only tracks the running usage (for logging) and leaves
 codebook alone.
 """
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
-from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.models import QuantizerConfig
 
-QUANTIZERS = ("vq", "cvq")
 _EPS = 1e-3  # the eps of alpha_k: keeps alpha_k < 1
-
-
-@dataclasses.dataclass(frozen=True)
-class QuantizerConfig:
-  """Static settings of the quantiser.
-
-  Attributes:
-    kind: "vq" (plain VQ-VAE) or "cvq" (online clustered codebook).
-    codebook_size: Q, number of entries.
-    latent_dim: D, size of each entry.
-    beta: commitment weight.
-    usage_decay: gamma of the running usage average (CVQ).
-    revive_strength: how fast alpha_k falls with usage (the 10 of Zheng & Vedaldi).
-  """
-
-  kind: str = "cvq"
-  codebook_size: int = 60
-  latent_dim: int = 16
-  beta: float = 0.25
-  usage_decay: float = 0.99
-  revive_strength: float = 10.0
-
-  def __post_init__(self):
-    if self.kind not in QUANTIZERS:
-      raise ValueError(f"quantizer kind '{self.kind}' is not one of {QUANTIZERS}")
-    check_ranges(self, {"codebook_size": POSITIVE, "latent_dim": POSITIVE,
-                        "beta": NON_NEGATIVE, "usage_decay": FRACTION,
-                        "revive_strength": NON_NEGATIVE})
 
 
 class Quantized(NamedTuple):

@@ -8,40 +8,13 @@ features. Both treat the scenario as a 1-D sequence over time whose channels are
 levels) and nearest-neighbour upsampling + convolutions up.
 """
 
-import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants
-from cvmdx_jax.config_dataclass import POSITIVE, check_ranges
-
-
-@dataclasses.dataclass(frozen=True)
-class EncoderConfig:
-  """Static sizes of E and D.
-
-  Attributes:
-    latent_dim: size D of z_hat.
-    channels: convolution widths per level (one stride-2 level each).
-    kernel_size: temporal kernel of every convolution.
-  """
-
-  latent_dim: int = 16
-  channels: tuple[int, ...] = (64, 128, 128)
-  kernel_size: int = 5
-
-  def __post_init__(self):
-    check_ranges(self, {"latent_dim": POSITIVE, "channels": POSITIVE, "kernel_size": POSITIVE})
-
-  def bottleneck_steps(self) -> int:
-    """Steps left after the stride-2 levels (75 -> 10 for three levels)."""
-    steps = constants.T_OBS
-    for _ in self.channels:
-      steps = math.ceil(steps / 2)
-    return steps
+from cvmdx_jax.config.models import EncoderConfig
 
 
 _IN_CHANNELS = constants.NUM_VEHICLES * (constants.NUM_FEATURES + 1)

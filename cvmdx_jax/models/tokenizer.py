@@ -11,7 +11,6 @@ Functional use, as the U-Net's: `graphdef, params = init_tokenizer(config, key)`
 `apply_tokenizer` / `encode` / `classify` with (graphdef, params) inside `jax.jit`.
 """
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -20,35 +19,10 @@ import optax
 from flax import nnx
 
 from cvmdx_jax import constants
-from cvmdx_jax.config_dataclass import NON_NEGATIVE, check_ranges
+from cvmdx_jax.config.models import TokenizerConfig
 from cvmdx_jax.models import functional, scenario_norm
 from cvmdx_jax.models import quantizer as quantizer_lib
-from cvmdx_jax.models.scenario_encoder import (EncoderConfig, ScenarioDecoder,
-                                               ScenarioEncoder)
-
-
-@dataclasses.dataclass(frozen=True)
-class TokenizerConfig:
-  """Static settings of the tokeniser.
-
-  Attributes:
-    encoder: sizes of E and D.
-    quantizer: codebook settings; its latent_dim must equal encoder.latent_dim.
-    cls_weight: lambda, weight of the maneuver cross-entropy.
-    ego_weight: weight of the ego vehicle's features in the reconstruction error (each
-      neighbour has weight 1).
-  """
-
-  encoder: EncoderConfig = EncoderConfig()
-  quantizer: quantizer_lib.QuantizerConfig = quantizer_lib.QuantizerConfig()
-  cls_weight: float = 1.0
-  ego_weight: float = 1.0
-
-  def __post_init__(self):
-    check_ranges(self, {"cls_weight": NON_NEGATIVE, "ego_weight": NON_NEGATIVE})
-    if self.encoder.latent_dim != self.quantizer.latent_dim:
-      raise ValueError(f"encoder latent_dim {self.encoder.latent_dim} != quantizer "
-                       f"latent_dim {self.quantizer.latent_dim}")
+from cvmdx_jax.models.scenario_encoder import ScenarioDecoder, ScenarioEncoder
 
 
 class Output(NamedTuple):

@@ -17,89 +17,16 @@ Functional use: `graphdef, params = init_unet(config, key)`, then
 `jax.jit`.
 """
 
-import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from cvmdx_jax import constants
-from cvmdx_jax.config_dataclass import BELOW_ONE, NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import functional
 from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, ResBlock, Upsample, group_norm,
                                      timestep_embedding)
-
-
-@dataclasses.dataclass(frozen=True)
-class UNetConfig:
-  """Static U-Net sizes.
-
-  Attributes:
-    num_tokens: Q, the codebook size; token Q is the null token.
-    base_channels: channels at the finest level.
-    channel_mult: per-level channel multipliers (the sequence halves per level).
-    num_res_blocks: residual blocks per level on the way down (one more up).
-    emb_mult: timestep/token embedding width = emb_mult * base_channels (reference: 2).
-    attention_levels: level indices with self-attention (default: the two coarsest).
-    num_heads: attention heads.
-    groups: GroupNorm groups.
-    dropout: dropout rate inside residual blocks (training only).
-    channels: input/output channels (2: a_x, yaw rate).
-    length: sequence length (125).
-    padded_length: length the sequence is zero-padded to (divisible by 2^(levels-1)),
-      (padded_length - length) // 2 zeros on the left, the rest on the right.
-    cond_dim: width of the optional conditioning vector (0 = token only, the paper).
-    cond_hidden: widths of the hidden layers (SiLU) of the conditioning vector's MLP,
-      which ends in the embedding width; () = one hidden layer of the embedding width
-      (emb_mult * base_channels), as before this field existed.
-    num_intents: classes of the intent classifier (`intent_logits`: an MLP with the
-      conditioning MLP's hidden widths from the first `intent_features` entries of the
-      conditioning vector to logits; beyond the paper); 0 = none.
-    intent_features: width of the classifier's input (the ego features).
-  """
-
-  num_tokens: int = 60
-  base_channels: int = 128
-  channel_mult: tuple[int, ...] = (1, 2, 3, 4)
-  num_res_blocks: int = 1
-  emb_mult: int = 2
-  attention_levels: tuple[int, ...] = (2, 3)
-  num_heads: int = 4
-  groups: int = 32
-  dropout: float = 0.0
-  channels: int = 2
-  length: int = constants.T_PRED
-  padded_length: int = 128
-  cond_dim: int = 0
-  cond_hidden: tuple[int, ...] = ()
-  num_intents: int = 0
-  intent_features: int = 0
-
-  def __post_init__(self):
-    check_ranges(self, {**dict.fromkeys(("base_channels", "channel_mult", "num_res_blocks",
-                                         "emb_mult", "num_heads", "groups"), POSITIVE),
-                        "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE,
-                        "cond_hidden": POSITIVE, "num_intents": NON_NEGATIVE,
-                        "intent_features": NON_NEGATIVE})
-    if bool(self.num_intents) != bool(self.intent_features) or (
-        self.intent_features > self.cond_dim):
-      raise ValueError(f"num_intents={self.num_intents}, intent_features="
-                       f"{self.intent_features}: the intent classifier needs both, and reads "
-                       f"the first intent_features of the cond_dim={self.cond_dim} inputs")
-    factor = 2 ** (len(self.channel_mult) - 1)
-    if self.padded_length % factor or self.padded_length < self.length:
-      raise ValueError(f"padded_length={self.padded_length} must be >= length={self.length} "
-                       f"and divisible by {factor}")
-
-  @property
-  def null_token(self) -> int:
-    return self.num_tokens
-
-  @property
-  def cond_widths(self) -> tuple[int, ...]:
-    """Hidden widths of the conditioning vector's MLP (`cond_hidden`, or the embedding's)."""
-    return self.cond_hidden or (self.emb_mult * self.base_channels,)
 
 
 class UNet1D(nnx.Module):

@@ -2,7 +2,6 @@
 paper) or k-means at a fixed K (`HypothesisConfig.method`)."""
 
 from cvmdx_jax.multimodal.hypotheses import fit_hypotheses
-from cvmdx_jax.multimodal.hypotheses import HypothesisConfig
 from cvmdx_jax.multimodal.hypotheses import Hypotheses
 
-__all__ = ["fit_hypotheses", "HypothesisConfig", "Hypotheses"]
+__all__ = ["fit_hypotheses", "Hypotheses"]

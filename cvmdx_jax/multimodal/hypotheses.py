@@ -17,70 +17,17 @@ component index), so slot 0 is the most likely hypothesis and slots
 """
 
 import dataclasses
-from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
-from cvmdx_jax.config_dataclass import FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.sampling import HypothesisConfig
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import kmeans
 from cvmdx_jax.multimodal import pca
 from cvmdx_jax.multimodal import scaling
-
-METHODS = ("bic", "kmeans")
-
-
-@dataclasses.dataclass(frozen=True)
-class HypothesisConfig:
-  """Static settings of the hypotheses stage (hashable, static under jit).
-
-  Attributes:
-    method: "bic" (the paper's PCA + GMM + BIC over C = 1..c_max; the fields from
-      scaling to em_iters apply) or "kmeans" (k-means with K = c_max over the
-      trajectories; kmeans_iters and endpoint_weight apply).
-    c_max: largest number of components tried (C = 1..c_max); K of "kmeans".
-    scaling: 'physical' (x / x_scale, y / y_scale; default) or 'minmax' (the
-      paper's literal per-scenario min-max recipe; over-selects with small
-      floors, see BUILD_NOTES.md).
-    x_scale: metres per unit along the road for 'physical'.
-    y_scale: metres per unit across the road for 'physical'.
-    pca_dim: number r of principal components (paper: 2; official code: 5).
-    reg_covar: covariance floor added to the diagonal, in scaled-and-projected
-      units^2 (official code: 9e-5 with pca_dim 5). 1e-2 (~0.7 m laterally)
-      recovers the true number of clear modes best among 1e-3..3e-2 (see
-      BUILD_NOTES.md). A fit whose likelihood is not finite (possible in
-      float32 with tiny floors) gets BIC +inf and is never selected.
-    em_iters: EM iterations per fit (fixed; no early stop). 5 to 60 select
-      the same C on the benchmark sets; 30 leaves margin for harder ones.
-    kmeans_iters: Lloyd steps of "kmeans" (fixed; no early stop).
-    endpoint_weight: weight of the final step in the k-means distance, in [0, 1]
-      (`kmeans.step_weights`; 0 = mean squared displacement over all steps).
-  """
-
-  method: str = "bic"
-  c_max: int = 3
-  scaling: str = "physical"
-  x_scale: float = 180.0
-  y_scale: float = 7.0
-  pca_dim: int = 2
-  reg_covar: float = 1e-2
-  em_iters: int = 30
-  kmeans_iters: int = 10
-  endpoint_weight: float = 0.0
-
-  RANGES: ClassVar = {"c_max": POSITIVE, "x_scale": POSITIVE, "y_scale": POSITIVE,
-                      "pca_dim": POSITIVE, "reg_covar": POSITIVE, "em_iters": NON_NEGATIVE,
-                      "kmeans_iters": NON_NEGATIVE, "endpoint_weight": FRACTION}
-
-  def __post_init__(self):
-    if self.method not in METHODS:
-      raise ValueError(f"HypothesisConfig.method must be one of {METHODS}, got {self.method!r}")
-    if self.scaling not in scaling.SCALINGS:
-      raise ValueError(
-          f"HypothesisConfig.scaling must be one of {scaling.SCALINGS}, got {self.scaling!r}")
-    check_ranges(self, self.RANGES)
 
 
 @jax.tree_util.register_dataclass
@@ -186,17 +133,17 @@ def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
   if config is None:
     config = HypothesisConfig() if c_max is None else HypothesisConfig(c_max=c_max)
   elif c_max is not None and c_max != config.c_max:
-    raise ValueError(f"fit_hypotheses: c_max={c_max} contradicts config.c_max={config.c_max}")
+    raise UserError(f"fit_hypotheses: c_max={c_max} contradicts config.c_max={config.c_max}")
   trajectories = jnp.asarray(trajectories)
   if trajectories.ndim != 4 or trajectories.shape[-1] != 2:
-    raise ValueError(
+    raise UserError(
         f"fit_hypotheses: trajectories must be (B, N, T, 2), got {trajectories.shape}")
   if not jnp.issubdtype(trajectories.dtype, jnp.floating):
-    raise ValueError(f"fit_hypotheses: trajectories must be floating, got {trajectories.dtype}")
+    raise UserError(f"fit_hypotheses: trajectories must be floating, got {trajectories.dtype}")
   if config.method == "kmeans":
     return jax.vmap(lambda t: _kmeans_one(t, config))(trajectories)
   if config.c_max > trajectories.shape[1]:
-    raise ValueError(
+    raise UserError(
         f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples")
   points = embed(trajectories, config)
   return jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories)

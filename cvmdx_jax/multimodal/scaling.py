@@ -14,7 +14,9 @@ Two variants:
 import jax
 import jax.numpy as jnp
 
-SCALINGS = ("physical", "minmax")
+from cvmdx_jax.config.sampling import SCALINGS
+from cvmdx_jax.errors import UserError
+
 
 # Ranges below this are treated as constant (scale 1), as scikit-learn's
 # MinMaxScaler does, so a coordinate that never varies maps to 0, not NaN.
@@ -71,4 +73,4 @@ def scale(trajectories: jax.Array, method: str, x_scale: float = 180.0,
     return physical_scale(trajectories, x_scale, y_scale)
   if method == "minmax":
     return minmax_scale(trajectories)
-  raise ValueError(f"scaling must be one of {SCALINGS}, got {method!r}")
+  raise UserError(f"scaling must be one of {SCALINGS}, got {method!r}")

@@ -9,11 +9,11 @@ resume, on loading, and when a denoiser is paired with a tokeniser
 import dataclasses
 
 from cvmdx_jax import ego_motion
+from cvmdx_jax.config.models import TokenizerConfig
 from cvmdx_jax.models import scenario_norm
-from cvmdx_jax.models import tokenizer as tokenizer_lib
 
 
-def tokenizer(model_cfg: tokenizer_lib.TokenizerConfig, dataset_id: str) -> dict:
+def tokenizer(model_cfg: TokenizerConfig, dataset_id: str) -> dict:
   """Identity of a tokeniser run, stored with its checkpoints and outputs."""
   return {"model": dataclasses.asdict(model_cfg), "dataset_id": dataset_id,
           "codebook_size": model_cfg.quantizer.codebook_size,

@@ -9,13 +9,13 @@ A tokeniser run (`cvmdx_jax.train.tokenizer`):
 
 A diffusion run (`cvmdx_jax.train.diffusion`):
 
-    <dir>/config.json            its `runs.config.DiffusionConfig` (model.num_tokens = Q)
+    <dir>/config.json            its `config.runs.DiffusionRunConfig` (model.num_tokens = Q)
     <dir>/checkpoints/<epoch>/   train state {"step", "params", "ema_params", "opt_state"}
     <dir>/metrics.jsonl
 
 A baseline run (`cvmdx_jax.train.baseline`):
 
-    <dir>/config.json            its `runs.config.BaselineConfig` (model.num_tokens = Q)
+    <dir>/config.json            its `config.runs.BaselineRunConfig` (model.num_tokens = Q)
     <dir>/checkpoints/<epoch>/   train state {"params", "opt_state", "step", "val", "best"}
     <dir>/metrics.jsonl          train loss and the val curve per epoch
 
@@ -30,7 +30,7 @@ import os
 from pathlib import Path
 
 from cvmdx_jax import sharding
-from cvmdx_jax.models import tokenizer as tokenizer_lib
+from cvmdx_jax.config.models import TokenizerConfig
 from cvmdx_jax.storage import checksums
 from cvmdx_jax.storage.checksums import CorruptRunError
 
@@ -58,7 +58,7 @@ def saved_tokenizer_fingerprint(workdir: str | os.PathLike) -> dict | None:
   return read_json(path, "tokeniser").get("fingerprint") if path.is_file() else None
 
 
-def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.TokenizerConfig,
+def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: TokenizerConfig,
                         fingerprint: dict) -> None:
   """Writes <workdir>/tokenizer.json (process 0 of a distributed run)."""
   workdir = Path(workdir)
@@ -70,7 +70,7 @@ def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: tokenizer_lib.Tok
 
 
 def write_run_config(workdir: str | os.PathLike, config) -> None:
-  """Writes <workdir>/config.json, the run's `DiffusionConfig` or `BaselineConfig`
+  """Writes <workdir>/config.json, the run's `DiffusionRunConfig` or `BaselineRunConfig`
   (process 0)."""
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)

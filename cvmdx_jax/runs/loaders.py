@@ -21,12 +21,13 @@ import numpy as np
 from flax import nnx
 
 from cvmdx_jax import ego_motion, sharding
-from cvmdx_jax.config_dataclass import to_dataclass
+from cvmdx_jax.config.fields import to_dataclass
+from cvmdx_jax.config.models import TokenizerConfig, UNetConfig
+from cvmdx_jax.config.runs import BaselineRunConfig, DiffusionRunConfig
 from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.models import unet1d, uncertainty
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.runs import fingerprints, layout, tokens
-from cvmdx_jax.runs.config import BaselineConfig, DiffusionConfig
 from cvmdx_jax.storage import checkpointing, identity
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.storage.checksums import CorruptRunError
@@ -55,7 +56,7 @@ class TokenizerBundle:
   params: dict
   gaussians: uncertainty.Gaussians
   graphdef: nnx.GraphDef = _static()
-  config: tokenizer_lib.TokenizerConfig = _static()
+  config: TokenizerConfig = _static()
   fingerprint: ml_collections.FrozenConfigDict = _static()
   checkpoint: ml_collections.FrozenConfigDict | None = dataclasses.field(
       default=None, metadata={"static": True})
@@ -82,18 +83,18 @@ class Denoiser:
   Attributes:
     params: the EMA parameters (pure dict).
     graphdef: U-Net graph definition.
-    config: the run's `DiffusionConfig` (U-Net in `config.model`, its targets in
+    config: the run's `DiffusionRunConfig` (U-Net in `config.model`, its targets in
       `config.diffusion`, default sampling in `config.sampling`).
     fingerprint: what the checkpoint was trained on (`fingerprints.diffusion`).
   """
 
   params: dict
   graphdef: nnx.GraphDef = _static()
-  config: DiffusionConfig = _static()
+  config: DiffusionRunConfig = _static()
   fingerprint: ml_collections.FrozenConfigDict = _static()
 
   @property
-  def unet(self) -> unet1d.UNetConfig:
+  def unet(self) -> UNetConfig:
     return self.config.model
 
   @property
@@ -123,14 +124,14 @@ class LearnedBaseline:
   Attributes:
     params: the parameters of the epoch chosen on val.
     graphdef: the NNX graph definition.
-    config: the run's `BaselineConfig` (the MLP in `config.model`).
+    config: the run's `BaselineRunConfig` (the MLP in `config.model`).
     fingerprint: what it was trained on (`fingerprints.baseline`).
     epoch: the chosen epoch.
   """
 
   params: dict
   graphdef: nnx.GraphDef = _static()
-  config: BaselineConfig = _static()
+  config: BaselineRunConfig = _static()
   fingerprint: ml_collections.FrozenConfigDict = _static()
   epoch: int = dataclasses.field(default=0, metadata={"static": True})
 
@@ -192,7 +193,7 @@ def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
   if not path.is_file():
     raise FileNotFoundError(f"{path}: missing; train the tokeniser with this workdir first")
   saved = layout.read_json(path, "tokeniser")
-  model_cfg = to_dataclass(tokenizer_lib.TokenizerConfig, saved["model"])
+  model_cfg = to_dataclass(TokenizerConfig, saved["model"])
   abstract = {"params": _abstract(tokenizer_lib.init_tokenizer, model_cfg),
               "step": jax.ShapeDtypeStruct((), jnp.int32)}
   state, fingerprint = _restore(workdir, abstract)
@@ -217,12 +218,12 @@ def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
   Raises:
     FileNotFoundError: no config.json (not a diffusion run directory).
     CorruptRunError: config.json is corrupt.
-    CheckpointMismatchError: config.json is not a `DiffusionConfig` of this version (e.g.
+    CheckpointMismatchError: config.json is not a `DiffusionRunConfig` of this version (e.g.
       another number of ego-motion features); no complete checkpoint, one of another
       model size, or a corrupt one.
   """
   workdir = Path(workdir)
-  config = _run_config(workdir, DiffusionConfig, "diffusion")
+  config = _run_config(workdir, DiffusionRunConfig, "diffusion")
   tree, fingerprint = _restore(workdir, {"ema_params": _abstract(unet1d.init_unet,
                                                                  config.model)})
   return Denoiser(tree["ema_params"], unet1d.make_graphdef(config.model), config,
@@ -235,15 +236,24 @@ def load_baseline(workdir: str | os.PathLike) -> LearnedBaseline:
   Raises:
     FileNotFoundError: no config.json (not a baseline run directory).
     CorruptRunError: config.json is corrupt.
-    CheckpointMismatchError: config.json is not a `BaselineConfig` of this version; no
+    CheckpointMismatchError: config.json is not a `BaselineRunConfig` of this version; no
       complete checkpoint, one of another model size (e.g. another number of ego-motion
       features), or a corrupt one.
   """
+  config, params, fingerprint, epoch = load_val_chosen(workdir, BaselineRunConfig, mc.init,
+                                                       "baseline")
+  return LearnedBaseline(params, mc.make_graphdef(config.model), config, fingerprint, epoch)
+
+
+def load_val_chosen(workdir: str | os.PathLike, run_cls, init, what: str):
+  """(config, params, fingerprint, epoch) of a run whose train state keeps the val-chosen
+  parameters in "best" (`train.baseline.make_init_fn`): its `run_cls` config.json, the
+  parameters of `init(config.model, key)`'s structure, the saved fingerprint and the
+  chosen epoch; raises as `load_baseline` does, naming a `what` run directory."""
   workdir = Path(workdir)
-  config = _run_config(workdir, BaselineConfig, "baseline")
-  abstract = {"best": {"params": _abstract(mc.init, config.model),
+  config = _run_config(workdir, run_cls, what)
+  abstract = {"best": {"params": _abstract(init, config.model),
                        "epoch": jax.ShapeDtypeStruct((), jnp.int32)}}
   tree, fingerprint = _restore(workdir, abstract)
-  return LearnedBaseline(tree["best"]["params"], mc.make_graphdef(config.model), config,
-                         ml_collections.FrozenConfigDict(fingerprint),
-                         int(tree["best"]["epoch"]))
+  return (config, tree["best"]["params"], ml_collections.FrozenConfigDict(fingerprint),
+          int(tree["best"]["epoch"]))

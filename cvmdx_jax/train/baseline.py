@@ -28,12 +28,14 @@ import numpy as np
 import optax
 
 from cvmdx_jax import constants, ego_motion
+from cvmdx_jax.config.models import MultipleChoiceConfig
+from cvmdx_jax.config.runs import BaselineRunConfig
+from cvmdx_jax.config.train import BaselineTrainConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
-from cvmdx_jax.runs.config import BaselineConfig, BaselineTrainConfig
 from cvmdx_jax.storage import locking
 from cvmdx_jax.train import loop
 
@@ -64,7 +66,7 @@ def wta_loss(trajectories, logits, future, weight, cls_weight: float):
           {"wta_ade": mean(regression), "cross_entropy": mean(ce), "winner": winner})
 
 
-def forward(graphdef, params, model_cfg: mc.MultipleChoiceConfig, inputs):
+def forward(graphdef, params, model_cfg: MultipleChoiceConfig, inputs):
   """(trajectories (B, K, T, 2), logits (B, K)) of a dict holding `INPUTS`."""
   controls, logits = mc.apply(graphdef, params, inputs["q"], inputs["delta"], inputs["ego"])
   return mc.rollout(model_cfg, controls, inputs["ego"], inputs["v0"], inputs["psi0"]), logits
@@ -78,17 +80,23 @@ def evaluate(graphdef, params, model_cfg, data, cls_weight: float) -> dict:
   trajectories, logits = forward(graphdef, params, model_cfg, data)
   gt = data["future"]
   loss, parts = wta_loss(trajectories, logits, gt, jnp.ones(len(gt)), cls_weight)
+  share = jnp.mean(jax.nn.one_hot(parts.pop("winner"), model_cfg.num_hypotheses), axis=0)
+  return {"loss": loss, **parts, **point_readouts(trajectories, logits, gt),
+          "head_share": share}
+
+
+def point_readouts(trajectories, logits, gt) -> dict:
+  """Split means (m) of min_ade / min_fde (best of K), ml_ade / ml_fde (most likely) and
+  mean_ade / mean_fde (probability-weighted mean) of trajectories (B, K, T, 2) with
+  probabilities softmax(logits (B, K)) against gt (B, T, 2)."""
   probs = jax.nn.softmax(logits, axis=-1)
   valid = jnp.ones(probs.shape, bool)
   likely = metrics.most_likely(trajectories, probs)
   mean = jnp.einsum("bk,bktc->btc", probs, trajectories, precision=constants.EXACT_MATMUL)
-  share = jnp.mean(jax.nn.one_hot(parts.pop("winner"), model_cfg.num_hypotheses), axis=0)
-  return {"loss": loss, **parts,
-          "min_ade": jnp.mean(metrics.min_ade_k(trajectories, gt, valid)),
+  return {"min_ade": jnp.mean(metrics.min_ade_k(trajectories, gt, valid)),
           "min_fde": jnp.mean(metrics.min_fde_k(trajectories, gt, valid)),
           "ml_ade": jnp.mean(metrics.ade(likely, gt)), "ml_fde": jnp.mean(metrics.fde(likely, gt)),
-          "mean_ade": jnp.mean(metrics.ade(mean, gt)), "mean_fde": jnp.mean(metrics.fde(mean, gt)),
-          "head_share": share}
+          "mean_ade": jnp.mean(metrics.ade(mean, gt)), "mean_fde": jnp.mean(metrics.fde(mean, gt))}
 
 
 def optimizer(t: BaselineTrainConfig, total_steps: int):
@@ -103,11 +111,12 @@ def optimizer(t: BaselineTrainConfig, total_steps: int):
                      optax.adamw(lr, weight_decay=t.weight_decay))
 
 
-def make_init_fn(model_cfg, tx, val_metrics):
-  """init_fn(key) -> train state; `val_metrics` gives the structure of `state["val"]`."""
+def make_init_fn(model_cfg, tx, val_metrics, init=mc.init):
+  """init_fn(key) -> train state of the model `init(model_cfg, key)`; `val_metrics` gives
+  the structure of `state["val"]`."""
 
   def init_fn(key):
-    _, params = mc.init(model_cfg, key)
+    _, params = init(model_cfg, key)
     # copies, so that donating the state never donates one buffer twice
     best = {"params": jax.tree.map(jnp.copy, params),
             "val_score": jnp.asarray(jnp.inf, jnp.float32), "epoch": jnp.zeros((), jnp.int32)}
@@ -121,23 +130,36 @@ def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
                  steps_per_epoch: int, select: str):
   """The pure train step of the shared loop: WTA loss, AdamW update and, at the last
   step of each epoch, the val evaluation (`evaluate`) and the choice of the epoch with
-  the lowest val `select` (one of `runs.config.SELECT_METRICS`)."""
+  the lowest val `select` (one of `config.runs.SELECT_METRICS`)."""
+
+  def loss_fn(params, batch, step):
+    del step
+    trajectories, logits = forward(graphdef, params, model_cfg, batch)
+    loss, parts = wta_loss(trajectories, logits, batch["future"], batch["weight"], cls_weight)
+    return loss, {"wta_ade": parts["wta_ade"], "cross_entropy": parts["cross_entropy"]}
+
+  return selecting_step_fn(
+      tx, loss_fn, lambda params, data: evaluate(graphdef, params, model_cfg, data, cls_weight),
+      val=val, steps_per_epoch=steps_per_epoch, select=select)
+
+
+def selecting_step_fn(tx, loss_fn, evaluate_fn, *, val: dict, steps_per_epoch: int,
+                      select: str):
+  """A pure train step of the shared loop: `loss_fn(params, batch, step) -> (loss, {name:
+  scalar})`, the optimiser `tx` and, at the last step of each epoch, `evaluate_fn(params,
+  val) -> {name: value}` and the choice of the epoch with the lowest val `select`."""
   val = jax.tree.map(jnp.asarray, val)
 
   def step_fn(state, batch, key):
     del key  # the step is deterministic given the batch
-
-    def loss_fn(params):
-      trajectories, logits = forward(graphdef, params, model_cfg, batch)
-      return wta_loss(trajectories, logits, batch["future"], batch["weight"], cls_weight)
-
-    (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+    (loss, parts), grads = jax.value_and_grad(
+        lambda p: loss_fn(p, batch, state["step"]), has_aux=True)(state["params"])
     updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
     params = optax.apply_updates(state["params"], updates)
     step = state["step"] + 1
 
     def choose(_):
-      scores = evaluate(graphdef, params, model_cfg, val, cls_weight)
+      scores = evaluate_fn(params, val)
       this = {"params": params, "val_score": scores[select], "epoch": step // steps_per_epoch}
       better = scores[select] < state["best"]["val_score"]
       return scores, jax.tree.map(lambda n, o: jnp.where(better, n, o), this, state["best"])
@@ -145,13 +167,12 @@ def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
     scores, best = jax.lax.cond(step % steps_per_epoch == 0, choose,
                                 lambda _: (state["val"], state["best"]), None)
     new = {"params": params, "opt_state": opt_state, "step": step, "val": scores, "best": best}
-    return new, {"loss": loss, "wta_ade": parts["wta_ade"],
-                 "cross_entropy": parts["cross_entropy"], "grad_norm": optax.tree.norm(grads)}
+    return new, {"loss": loss, **parts, "grad_norm": optax.tree.norm(grads)}
 
   return step_fn
 
 
-def split_arrays(config: BaselineConfig, split: str) -> tuple[dict, dict]:
+def split_arrays(config: BaselineRunConfig, split: str) -> tuple[dict, dict]:
   """({q, delta, ego, v0, psi0, future} numpy arrays of `split`, its tokens' metadata)."""
   scenarios = dataset_lib.load_split(config.data_dir, split)
   toks, meta = tokens_lib.load_tokens(
@@ -165,7 +186,7 @@ def split_arrays(config: BaselineConfig, split: str) -> tuple[dict, dict]:
 
 
 @locking.holds("workdir")
-def train(config: BaselineConfig, workdir: str | os.PathLike):
+def train(config: BaselineRunConfig, workdir: str | os.PathLike):
   """Trains the baseline into `workdir` (resuming if possible); returns the final state.
 
   `workdir` gets `config.json` (`config` with the tokens' Q), `metrics.jsonl` (train loss

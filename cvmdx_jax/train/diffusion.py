@@ -21,12 +21,14 @@ import numpy as np
 import optax
 
 from cvmdx_jax import ego_motion, targets
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig
+from cvmdx_jax.config.train import DiffusionTrainConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.diffusion import cosine_schedule, losses, v_loss
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
-from cvmdx_jax.runs.config import DiffusionConfig, DiffusionTrainConfig
 from cvmdx_jax.storage import locking
 from cvmdx_jax.train import loop
 
@@ -41,7 +43,7 @@ def optimizer(t: DiffusionTrainConfig, total_steps: int):
                      optax.adamw(lr, weight_decay=t.weight_decay))
 
 
-def make_init_fn(cfg: unet1d.UNetConfig, tx):
+def make_init_fn(cfg: UNetConfig, tx):
   """init_fn(key) -> {params, ema_params, opt_state, step}."""
 
   def init_fn(key):
@@ -53,7 +55,7 @@ def make_init_fn(cfg: unet1d.UNetConfig, tx):
   return init_fn
 
 
-def make_step_fn(graphdef, cfg: unet1d.UNetConfig, tx, *, cond_drop_prob: float,
+def make_step_fn(graphdef, cfg: UNetConfig, tx, *, cond_drop_prob: float,
                  ema_decay: float, num_steps: int):
   """The pure train step of the shared loop: v-loss (+ the intent classifier's
   cross-entropy where `cfg.num_intents`, reported as "intent_ce"; `batch["label"]` then
@@ -101,7 +103,7 @@ def apply_gradients(state, grads, tx, ema_decay: float):
   return {**state, "params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
 
 
-def training_data(config: DiffusionConfig, *, delta: bool = False
+def training_data(config: DiffusionRunConfig, *, delta: bool = False
                   ) -> tuple[dict, int, str, dict]:
   """(arrays {x0, q[, ego][, class_weight][, label][, delta]}, Q, dataset id, tokens
   metadata) of the training split; `class_weight` (M,) only where `diffusion.class_weights`
@@ -130,7 +132,7 @@ def training_data(config: DiffusionConfig, *, delta: bool = False
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 
-def init_and_step(config: DiffusionConfig, total_steps: int):
+def init_and_step(config: DiffusionRunConfig, total_steps: int):
   """(graphdef, init_fn, step_fn) of a run (`config.model` sized for its tokens) with
   `total_steps` optimiser steps."""
   cfg = config.model
@@ -142,7 +144,7 @@ def init_and_step(config: DiffusionConfig, total_steps: int):
 
 
 @locking.holds("workdir")
-def train(config: DiffusionConfig, workdir: str | os.PathLike):
+def train(config: DiffusionRunConfig, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
   `workdir` gets `config.json` (`config` with the tokens' Q), `metrics.jsonl` and

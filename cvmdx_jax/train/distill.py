@@ -17,7 +17,7 @@ x_t is the training data noised by the forward process (t uniform over the T ste
 the guidance stage, over the student's grid for the progressive ones), w = w(t, delta)
 with the teacher's guidance settings and each scenario's token uncertainty, the loss the
 weighted mean squared v error (the teacher's class weights). The run directory is a
-diffusion run directory (config.json = the student's `DiffusionConfig`, sampler
+diffusion run directory (config.json = the student's `DiffusionRunConfig`, sampler
 "distilled"; checkpoints with the EMA parameters), so `Predictor.load` and
 `evaluate.py --diffusion_dir` take it as they are; its fingerprint adds the teacher's
 fingerprint and the content id of its parameters, so a resume with another teacher is
@@ -33,21 +33,23 @@ import optax
 from flax import traverse_util
 
 from cvmdx_jax import ego_motion
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
 from cvmdx_jax.diffusion import cosine_schedule, guidance_weight, guided_v_fn, param
-from cvmdx_jax.diffusion.losses import weighted_mse
 from cvmdx_jax.diffusion import distillation
+from cvmdx_jax.diffusion.losses import weighted_mse
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints, layout, loaders
-from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig
 from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import loop
 
-class TeacherMismatchError(ValueError):
+class TeacherMismatchError(UserError):
   """The teacher cannot teach this run (wrong kind, steps or data)."""
 
 
-def stage_of(teacher: DiffusionConfig, guided_progressive: bool = False) -> str:
+def stage_of(teacher: DiffusionRunConfig, guided_progressive: bool = False) -> str:
   """"progressive" for a student teacher; for a guided denoiser "guided_progressive" if
   asked, else "guidance"."""
   if teacher.diffusion.guidance_input:
@@ -55,7 +57,7 @@ def stage_of(teacher: DiffusionConfig, guided_progressive: bool = False) -> str:
   return "guided_progressive" if guided_progressive else "guidance"
 
 
-def student_config(teacher: DiffusionConfig, config: DistillConfig) -> DiffusionConfig:
+def student_config(teacher: DiffusionRunConfig, config: DistillRunConfig) -> DiffusionRunConfig:
   """The student's run config: the teacher's with w as an input (guidance stage), the
   distillation's seed and optimiser, and the distilled sampler at `config.steps` (an
   intent classifier is the teacher's, copied)."""
@@ -94,7 +96,7 @@ def student_params(teacher_params: dict, fresh: dict) -> dict:
   return traverse_util.unflatten_dict(out)
 
 
-def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
+def make_init_fn(teacher_params: dict, cfg: UNetConfig, tx):
   """init_fn(key) -> {params, ema_params, opt_state, step, teacher}."""
 
   def init_fn(key):
@@ -106,7 +108,7 @@ def make_init_fn(teacher_params: dict, cfg: unet1d.UNetConfig, tx):
   return init_fn
 
 
-def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, stage: str,
+def make_step_fn(teacher: loaders.Denoiser, student: DiffusionRunConfig, tx, *, stage: str,
                  substeps: int):
   """The pure train step: the teacher's v-target at noised data (for a progressive stage
   `substeps` teacher steps per student step), the student's v-loss, AdamW and the EMA
@@ -158,7 +160,7 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionConfig, tx, *, sta
   return step_fn
 
 
-def check_teacher(teacher: loaders.Denoiser, config: DistillConfig) -> str:
+def check_teacher(teacher: loaders.Denoiser, config: DistillRunConfig) -> str:
   """The stage the teacher teaches; TeacherMismatchError where it cannot teach this run."""
   stage = stage_of(teacher.config, config.guided_progressive)
   if config.guided_progressive and stage != "guided_progressive":
@@ -179,7 +181,7 @@ def check_teacher(teacher: loaders.Denoiser, config: DistillConfig) -> str:
 
 
 @locking.holds("workdir")
-def train(config: DistillConfig, workdir: str | os.PathLike):
+def train(config: DistillRunConfig, workdir: str | os.PathLike):
   """Distils the teacher run `config.teacher_dir` into `workdir` (resuming if possible);
   returns the final state.
 
@@ -210,7 +212,7 @@ def train(config: DistillConfig, workdir: str | os.PathLike):
       "guidance": dataclasses.asdict(student.sampling.guidance),
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
-  if config.teacher_substeps != DistillConfig.teacher_substeps:  # runs before the field
+  if config.teacher_substeps != DistillRunConfig.teacher_substeps:  # runs before the field
     fingerprint["distill"]["teacher_substeps"] = config.teacher_substeps
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   tx = diffusion_train.optimizer(config.train, total_steps)

@@ -20,14 +20,16 @@ import numpy as np
 import optax
 
 from cvmdx_jax import sharding
+from cvmdx_jax.config.runs import TokenizerRunConfig
+from cvmdx_jax.config.train import TokenizerTrainConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import Scenarios
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import uncertainty
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
-from cvmdx_jax.runs.config import TokenizerRunConfig, TrainConfig
 from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.storage.identity import content_id
@@ -68,7 +70,7 @@ def make_step_fn(graphdef, model_cfg, tx):
   return step_fn
 
 
-def optimizer(t: TrainConfig) -> optax.GradientTransformation:
+def optimizer(t: TokenizerTrainConfig) -> optax.GradientTransformation:
   """Adam with global-norm clipping."""
   return optax.chain(optax.clip_by_global_norm(t.grad_clip), optax.adam(t.learning_rate))
 
@@ -125,7 +127,7 @@ def train_and_evaluate(config: TokenizerRunConfig, workdir: str | os.PathLike, *
   else:
     dataset_id = _content_id(splits)
   if "train" not in splits:
-    raise ValueError(f"tokenizer: splits {sorted(splits)} lack 'train' (config.splits)")
+    raise UserError(f"tokenizer: splits {sorted(splits)} lack 'train' (config.splits)")
   for name, s in splits.items():
     s.validate(source=f"{config.data_dir}/{name}")
   train = splits["train"]

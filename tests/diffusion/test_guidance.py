@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion
-from cvmdx_jax.diffusion import GuidanceConfig
+from cvmdx_jax.config.sampling import GuidanceConfig
 
 T = 1000
 

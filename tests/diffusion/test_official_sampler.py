@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling as sampling_lib
 from cvmdx_jax.models import unet1d
 
@@ -82,7 +84,7 @@ def test_official_loop_equals_numpy_reference(schedule, steps, clip, w):
   want = numpy_official(np.asarray(x_T), np.asarray(schedule.alphas_cumprod), steps, *w, clip)
   np.testing.assert_allclose(got, want, atol=1e-5)
   # the paper-mode loop with the official guidance form and direction is another sampler
-  cfg = diffusion.GuidanceConfig(form="official", direction="official")
+  cfg = GuidanceConfig(form="official", direction="official")
   v_fn = diffusion.guided_v_fn(analytic_v, q, NULL, jnp.zeros(6), schedule, cfg)
   paper = diffusion.ddim_sample(v_fn, jax.random.key(0), shape, schedule, steps=steps,
                                 clip_x0=clip, x_T=x_T)
@@ -125,12 +127,12 @@ def test_samplers_take_an_explicit_x_T(schedule):
 
 @pytest.mark.slow
 def test_inference_official_mode_runs_the_official_loop(schedule):
-  cfg = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
+  cfg = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                           attention_levels=(), num_heads=2)
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
-  sampling = sampling_lib.SamplingConfig(num_samples=3, mode="official", steps=5,
-                                      guidance=diffusion.GuidanceConfig(w_min=0.2, w_max_base=0.8))
+  sampling = SamplingConfig(num_samples=3, mode="official", steps=5,
+                                      guidance=GuidanceConfig(w_min=0.2, w_max_base=0.8))
   key = jax.random.key(4)
   model = lambda x, t, c: unet1d.apply_unet(g, p, x, t, c)
   fn = diffusion.cond_uncond_v_fn(model, jnp.full((3,), 1), cfg.null_token)
@@ -145,6 +147,6 @@ def test_inference_official_mode_runs_the_official_loop(schedule):
   got, want = both(p)
   np.testing.assert_allclose(got, want, atol=1e-5)
   with pytest.raises(ValueError, match="mode"):
-    sampling_lib.SamplingConfig(mode="official", sampler="ddpm")
+    SamplingConfig(mode="official", sampler="ddpm")
   with pytest.raises(ValueError, match="mode"):
     dataclasses.replace(sampling, mode="torch")

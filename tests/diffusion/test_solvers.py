@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.diffusion import solvers
 from tests.diffusion.gaussian_data import MU, STD, gaussian_v
 
@@ -87,7 +89,7 @@ def test_clip_bounds_every_predicted_x0(schedule):
 
 def _tiny_unet():
   from cvmdx_jax.models import unet1d
-  cfg = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
+  cfg = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                           attention_levels=(1,), num_heads=2)
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
@@ -105,7 +107,7 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
   keys = jax.random.split(jax.random.key(5), b)
 
   def run(sampler, steps):
-    config = sampling.SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
+    config = SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
     return predict(g, p, jnp.arange(b), jnp.array([5.0, 40.0]), jnp.full(b, 30.0),
                    jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
                    null_token=cfg.null_token, config=config).controls
@@ -122,6 +124,5 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
 
 
 def test_unknown_sampler_is_refused():
-  from cvmdx_jax.inference import sampling
   with pytest.raises(ValueError, match="sampling.sampler"):
-    sampling.SamplingConfig(sampler="unipc")
+    SamplingConfig(sampler="unipc")

@@ -2,7 +2,7 @@
 
 import pytest
 
-from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.evaluation import sweeps
 
 

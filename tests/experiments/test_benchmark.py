@@ -7,9 +7,9 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from cvmdx_jax import ego_motion
-from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.config.runs import DiffusionRunConfig
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.models.performance import PerformanceOptions
-from cvmdx_jax.runs.config import DiffusionConfig
 from cvmdx_jax.storage import atomic
 from experiments import benchmark
 
@@ -19,8 +19,8 @@ OFFICIAL = {"params": 22_470_000, "b1": {"total": 1.6, "ddim": 1.5, "post": 0.1}
 
 @pytest.mark.slow
 def test_reference_timings_schema_on_a_tiny_model(tmp_path):
-  config = DiffusionConfig.from_config(diffusion_config.get_config("tiny"))
-  sampling = sampling_lib.SamplingConfig(num_samples=3, sampler="dpmpp2m", steps=2)
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny"))
+  sampling = SamplingConfig(num_samples=3, sampler="dpmpp2m", steps=2)
   timings = benchmark.reference_timings(
       config, 4, sampling, big=3, train_batch=4,
       repeats={"b1": (1, 2), "big": (0, 1), "train": (1, 1)})
@@ -37,7 +37,7 @@ def test_reference_timings_schema_on_a_tiny_model(tmp_path):
 def test_train_timing_feeds_the_conditioning_and_labels_of_the_demo_denoiser():
   base = diffusion_config.get_config("tiny")  # with the demo's conditioning
   base.diffusion.conditioning, base.diffusion.intent_conditioning = "ego_film_residual", True
-  config = DiffusionConfig.from_config(base).with_tokens(4)
+  config = DiffusionRunConfig.from_config(base).with_tokens(4)
   assert config.model.cond_dim > ego_motion.NUM_FEATURES and config.model.num_intents == 3
   assert benchmark.train_timing(config, batch=4, repeats=1) > 0
 
@@ -106,10 +106,10 @@ def test_performance_table_marks_what_auto_takes_per_platform():
 
 
 def test_the_distilled_sampler_is_timed_on_a_student():
-  config = DiffusionConfig.from_config(diffusion_config.get_config("demo")).with_tokens(5)
-  pair = sampling_lib.SamplingConfig(sampler="dpmpp2m", steps=3)
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("demo")).with_tokens(5)
+  pair = SamplingConfig(sampler="dpmpp2m", steps=3)
   assert benchmark.sampled_config(config, pair) is config
-  student = benchmark.sampled_config(config, sampling_lib.SamplingConfig(sampler="distilled",
+  student = benchmark.sampled_config(config, SamplingConfig(sampler="distilled",
                                                                          steps=2))
   assert student.diffusion.guidance_input and not config.diffusion.guidance_input
   assert student.model.cond_dim == config.model.cond_dim + 1

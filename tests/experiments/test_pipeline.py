@@ -24,16 +24,16 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import ego_motion
-from cvmdx_jax.runs import fingerprints
-from cvmdx_jax.runs import loaders as runs_lib
-from cvmdx_jax.runs.config import (BaselineConfig, DiffusionConfig, DistillConfig,
+from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
                                    TokenizerRunConfig)
-from cvmdx_jax.storage import atomic, checkpointing, checksums
-from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
-from cvmdx_jax.models import unet1d
+from cvmdx_jax.evaluation import learned_baseline, report, scoring
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
+from cvmdx_jax.models import unet1d
+from cvmdx_jax.runs import fingerprints
+from cvmdx_jax.runs import loaders as runs_lib
+from cvmdx_jax.storage import atomic, checkpointing, checksums
 from cvmdx_jax.train import baseline, diffusion, distill, tokenizer
 from tests.subprocess_env import environ
 from tests.train import toy
@@ -46,7 +46,7 @@ def _train_tokenizer(config, workdir):
 
 
 def _train_diffusion(config, workdir):
-  return diffusion.train(DiffusionConfig.from_config(config), workdir)
+  return diffusion.train(DiffusionRunConfig.from_config(config), workdir)
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +129,7 @@ def test_report_has_every_method_subset_and_figure(runs):
 def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatch):
   config = baseline_config.get_config("tiny")
   config.data_dir, config.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
-  baseline.train(BaselineConfig.from_config(config), tmp_path / "baseline")
+  baseline.train(BaselineRunConfig.from_config(config), tmp_path / "baseline")
   kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
             data_dir=runs / "data", max_scenarios=12, ddpm_scenarios=0)
   report.run(**kw, workdir=tmp_path / "with", baseline_dir=tmp_path / "baseline")
@@ -286,7 +286,8 @@ def test_predictor_is_deterministic_and_chunk_independent(runs):
 def test_load_denoiser_restores_the_ema_params_alone(runs):
   denoiser = runs_lib.load_denoiser(runs / "diffusion")
   # reference: the whole train state, restored with the trainer's init_fn
-  config = DiffusionConfig.from_config(json.loads((runs / "diffusion" / "config.json").read_text()))
+  config = DiffusionRunConfig.from_config(
+      json.loads((runs / "diffusion" / "config.json").read_text()))
   assert config == denoiser.config
   _, init_fn, _ = diffusion.init_and_step(config, total_steps=1)
   state, fingerprint = toy.restore(runs / "diffusion", init_fn)
@@ -328,7 +329,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   diff.diffusion.conditioning = "ego_film_residual"
-  data, *_ = diffusion.training_data(DiffusionConfig.from_config(diff))
+  data, *_ = diffusion.training_data(DiffusionRunConfig.from_config(diff))
   train = dataset.load_split(runs / "data", "train")
   ego = np.asarray(ego_motion.ego_features(train.xi, train.mask))
   base = np.asarray(ego_motion.residual_controls(ego, diff.diffusion.residual_decay_s))
@@ -431,13 +432,14 @@ def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, mon
 def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
-  plain, num_tokens, dataset_id, meta = diffusion.training_data(DiffusionConfig.from_config(diff))
+  plain, num_tokens, dataset_id, meta = diffusion.training_data(
+      DiffusionRunConfig.from_config(diff))
   assert "class_weight" not in plain  # the paper's balanced classes: no extra array
-  fingerprint = fingerprints.diffusion(DiffusionConfig.from_config(diff).with_tokens(num_tokens),
+  fingerprint = fingerprints.diffusion(DiffusionRunConfig.from_config(diff).with_tokens(num_tokens),
                                        dataset_id, meta)
   assert fingerprint["class_weights"] == [1.0, 1.0, 1.0]
   diff.diffusion.class_weights = (3.0, 1.0, 0.5)
-  config = DiffusionConfig.from_config(diff).with_tokens(num_tokens)
+  config = DiffusionRunConfig.from_config(diff).with_tokens(num_tokens)
   data, *_ = diffusion.training_data(config)
   labels = dataset.load_split(runs / "data", "train").label
   np.testing.assert_array_equal(data["class_weight"], np.array([3.0, 1.0, 0.5])[labels])
@@ -459,14 +461,14 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   for bad in [(1.0, 1.0), (1.0, 0.0, 1.0), (1.0, float("nan"), 1.0)]:
     diff.diffusion.class_weights = bad
     with pytest.raises(ValueError, match="diffusion.class_weights"):
-      DiffusionConfig.from_config(diff)
+      DiffusionRunConfig.from_config(diff)
 
 
 def _distill(teacher_dir, workdir, steps, guided_progressive=False, teacher_substeps=2):
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.steps = str(teacher_dir), steps
   config.guided_progressive, config.teacher_substeps = guided_progressive, teacher_substeps
-  return distill.train(DistillConfig.from_config(config), workdir)
+  return distill.train(DistillRunConfig.from_config(config), workdir)
 
 
 def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_path,
@@ -543,10 +545,10 @@ def test_a_stopped_distillation_resumes_bit_identically(runs, tmp_path):
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.train.num_epochs = str(runs / "diffusion"), 2
   config.steps, config.guided_progressive = 2, True
-  whole = distill.train(DistillConfig.from_config(config), tmp_path / "whole")
+  whole = distill.train(DistillRunConfig.from_config(config), tmp_path / "whole")
   shutil.copytree(tmp_path / "whole", tmp_path / "stopped")
   shutil.rmtree(tmp_path / "stopped" / "checkpoints" / "2")
-  resumed = distill.train(DistillConfig.from_config(config), tmp_path / "stopped")
+  resumed = distill.train(DistillRunConfig.from_config(config), tmp_path / "stopped")
   jax.tree.map(np.testing.assert_array_equal, whole["ema_params"], resumed["ema_params"])
   assert int(resumed["step"]) == int(whole["step"])
   # resumed, not restarted: epoch 1's line (with its wall time) is kept, epoch 2's rewritten
@@ -560,7 +562,7 @@ def test_intent_conditioned_run_trains_distills_and_predicts(runs, tmp_path):
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   diff.diffusion.conditioning = "ego_film_residual"
   diff.diffusion.intent_conditioning = True
-  data, *_ = diffusion.training_data(DiffusionConfig.from_config(diff))
+  data, *_ = diffusion.training_data(DiffusionRunConfig.from_config(diff))
   train = dataset.load_split(runs / "data", "train")
   ego = np.asarray(ego_motion.ego_features(train.xi, train.mask))
   np.testing.assert_allclose(data["ego"], np.concatenate([ego, np.eye(3)[train.label]], -1))

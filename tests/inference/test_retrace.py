@@ -17,13 +17,13 @@ import pytest
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import constants
+from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference import predictor as predict
-from cvmdx_jax.inference.sampling import SamplingConfig
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import unet1d, uncertainty
 from cvmdx_jax.runs import loaders
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 from tests.train import toy
 from tests.train.toy_job import task
 
@@ -44,7 +44,7 @@ def _random_predictor(chunk_size: int) -> predict.Predictor:
   gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
   tokenizer = loaders.TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
                                    ml_collections.FrozenConfigDict({"dataset_id": "none"}))
-  config = DiffusionConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
   denoiser = loaders.Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
   sampling = SamplingConfig(num_samples=3, steps=2)

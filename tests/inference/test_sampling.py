@@ -7,13 +7,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax import diffusion, ego_motion, targets, vmm
+from cvmdx_jax import diffusion, ego_motion, vmm
+from cvmdx_jax.config.denoiser import DenoiserConfig, PAPER_SCALE
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 
-CFG = unet1d.UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
+CFG = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2)
-SAMPLING = sampling.SamplingConfig(num_samples=9, steps=4)
+SAMPLING = SamplingConfig(num_samples=9, steps=4)
 predict_batch = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
 
 
@@ -24,7 +27,7 @@ def model():
   return g, p
 
 
-def _predict(model, keys, b=3, config=SAMPLING, denoiser=targets.DenoiserConfig()):
+def _predict(model, keys, b=3, config=SAMPLING, denoiser=DenoiserConfig()):
   g, p = model
   q = jnp.arange(b) % 4
   return predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
@@ -42,7 +45,7 @@ def test_shapes_and_consistency(model):
   np.testing.assert_allclose(out.mean, out.trajectories.mean(1), atol=1e-4)
   # trajectories are the VMM rollout of the controls, which stay in the normalised caps
   np.testing.assert_allclose(out.trajectories, vmm.rollout(out.controls, 30.0, 0.0), atol=1e-3)
-  x0 = out.controls / jnp.asarray(targets.PAPER_SCALE)
+  x0 = out.controls / jnp.asarray(PAPER_SCALE)
   assert float(jnp.abs(x0).max()) <= 1.0 + 1e-5
 
 
@@ -66,12 +69,12 @@ def test_ddpm_path_and_bad_config(model):
   out = _predict(model, jax.random.split(jax.random.key(0), 2), b=2, config=cfg)
   assert out.trajectories.shape == (2, 3, 125, 2)
   with pytest.raises(ValueError, match="sampler"):
-    sampling.SamplingConfig(sampler="euler")
+    SamplingConfig(sampler="euler")
 
 
 def test_control_scale_sets_the_physical_range(model):
   keys = jax.random.split(jax.random.key(0), 2)
-  narrow = targets.DenoiserConfig(control_scale=(2.0, 0.1))
+  narrow = DenoiserConfig(control_scale=(2.0, 0.1))
   a = _predict(model, keys, b=2)
   b = _predict(model, keys, b=2, denoiser=narrow)
   # same normalised samples, other physical units
@@ -97,8 +100,8 @@ def test_ego_film_reaches_the_unconditional_branch():
   keys = jax.random.split(jax.random.key(5), 2)
   # official form with w = 0 everywhere: the guided v is the unconditional branch alone
   uncond_only = dataclasses.replace(
-      SAMPLING, guidance=diffusion.GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
-  film = targets.DenoiserConfig(conditioning="ego_film")
+      SAMPLING, guidance=GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
+  film = DenoiserConfig(conditioning="ego_film")
   a = _predict_ego(g, p, ego, keys, uncond_only, film)
   b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only, film)
   assert not np.allclose(a.controls, b.controls)
@@ -114,8 +117,8 @@ def test_ego_residual_adds_the_extrapolated_controls(model):
   g, p = model
   ego = jax.random.normal(jax.random.key(6), (2, ego_motion.NUM_FEATURES))
   keys = jax.random.split(jax.random.key(7), 2)
-  token = _predict_ego(g, p, ego, keys, SAMPLING, targets.DenoiserConfig())
-  residual = targets.DenoiserConfig(conditioning="ego_residual", residual_decay_s=(1.0, 0.5))
+  token = _predict_ego(g, p, ego, keys, SAMPLING, DenoiserConfig())
+  residual = DenoiserConfig(conditioning="ego_residual", residual_decay_s=(1.0, 0.5))
   out = _predict_ego(g, p, ego, keys, SAMPLING, residual)
   base = ego_motion.residual_controls(ego, (1.0, 0.5))[:, None]
   np.testing.assert_allclose(out.controls, token.controls + base, atol=1e-5)

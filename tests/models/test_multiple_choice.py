@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import constants, ego_motion
+from cvmdx_jax.config.models import MultipleChoiceConfig
 from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.train import baseline
 
 T = np.arange(1, constants.T_PRED + 1) * constants.DT  # s after t0
-CFG = mc.MultipleChoiceConfig(num_tokens=5, num_hypotheses=3, token_dim=4, hidden=(8,))
+CFG = MultipleChoiceConfig(num_tokens=5, num_hypotheses=3, token_dim=4, hidden=(8,))
 
 
 def _inputs(b=4, seed=0):
@@ -111,6 +112,6 @@ def test_gradient_reaches_only_the_winners_regression_head():
 
 def test_config_refuses_bad_sizes():
   with pytest.raises(ValueError, match=r"hidden=\(8, 0\): must be > 0"):
-    mc.MultipleChoiceConfig(hidden=(8, 0))
+    MultipleChoiceConfig(hidden=(8, 0))
   with pytest.raises(ValueError, match="two"):
-    mc.MultipleChoiceConfig(control_scale=(4.0,))
+    MultipleChoiceConfig(control_scale=(4.0,))

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import performance, unet1d, winograd
 from cvmdx_jax.models.group_norm import GroupNorm
 from cvmdx_jax.models.performance import PerformanceOptions
@@ -17,7 +18,7 @@ ON, OFF = PerformanceOptions("on", "on"), PerformanceOptions("off", "off")
 def _forward_and_gradient(options):
   """A U-Net with 128 channels (Winograd taken) on a short sequence: its output and the
   gradient of a non-linear read-out over all parameters, in one jitted call."""
-  config = unet1d.UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1,),
+  config = UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1,),
                              attention_levels=(), num_heads=1, length=6, padded_length=8)
   graphdef, params = unet1d.init_unet(config, jax.random.key(0))
   # the zero-initialised output convolutions made non-zero, so every gradient flows
@@ -108,7 +109,7 @@ def test_use_sets_the_options_for_a_block_and_retraces_jitted_functions():
 
 def _two_level_unet():
   """128 channels on two levels: residual blocks and an upsampling that take Winograd."""
-  config = unet1d.UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1, 1),
+  config = UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1, 1),
                              attention_levels=(), num_heads=1, length=6, padded_length=8)
   graphdef, params = unet1d.init_unet(config, jax.random.key(0))
   params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape),

@@ -8,9 +8,9 @@ import numpy as np
 import scipy.stats
 from flax import nnx
 
+from cvmdx_jax.config.models import EncoderConfig, QuantizerConfig, TokenizerConfig
 from cvmdx_jax.models import quantizer as qz
 from cvmdx_jax.models import tokenizer as tok
-from cvmdx_jax.models.scenario_encoder import EncoderConfig
 
 
 def test_quantize_matches_numpy_nearest_and_losses():
@@ -43,8 +43,8 @@ def test_straight_through_gradient_is_identity_and_losses_split():
 
 
 def test_straight_through_reaches_encoder(scenarios_factory):
-  cfg = tok.TokenizerConfig(EncoderConfig(latent_dim=4, channels=(8, 8), kernel_size=3),
-                            qz.QuantizerConfig(codebook_size=5, latent_dim=4))
+  cfg = TokenizerConfig(EncoderConfig(latent_dim=4, channels=(8, 8), kernel_size=3),
+                            QuantizerConfig(codebook_size=5, latent_dim=4))
   model = tok.Tokenizer(cfg, rngs=nnx.Rngs(0))
   graphdef, params = nnx.split(model, nnx.Param)
   s = scenarios_factory(6)
@@ -70,7 +70,7 @@ def test_batch_share_ignores_padding_and_perplexity_matches_scipy():
 
 
 def test_cvq_anchors_come_only_from_weighted_rows():
-  cfg = qz.QuantizerConfig(kind="cvq", codebook_size=16, latent_dim=2)
+  cfg = QuantizerConfig(kind="cvq", codebook_size=16, latent_dim=2)
   z = jnp.concatenate([jnp.zeros((4, 2)), jnp.full((4, 2), 1e6)])
   weight = jnp.array([1.0] * 4 + [0.0] * 4)
   codebook, usage = qz.update_codebook(jnp.ones((16, 2)), qz.init_usage(cfg), z,
@@ -82,7 +82,7 @@ def test_cvq_anchors_come_only_from_weighted_rows():
 
 
 def test_vq_update_leaves_codebook_alone():
-  cfg = qz.QuantizerConfig(kind="vq", codebook_size=4, latent_dim=2)
+  cfg = QuantizerConfig(kind="vq", codebook_size=4, latent_dim=2)
   cb = jnp.arange(8.0).reshape(4, 2)
   new, _ = qz.update_codebook(cb, qz.init_usage(cfg), jnp.zeros((3, 2)),
                               jnp.zeros(3, jnp.int32), jnp.ones(3), jax.random.key(0), cfg)
@@ -114,8 +114,8 @@ def test_cvq_revives_entries_that_vq_leaves_dead():
   codebook = jnp.asarray(np.stack([np.linspace(7, 9, 8), rng.normal(0, 0.1, 8)], 1)
                          .astype(np.float32))
   assert int(qz.codebook_stats(qz.nearest(codebook, data), 8)[0]) == 1
-  vq_use, vq_ppl = _train_codebook(qz.QuantizerConfig("vq", 8, 2), codebook, data)
-  cvq_use, cvq_ppl = _train_codebook(qz.QuantizerConfig("cvq", 8, 2), codebook, data)
+  vq_use, vq_ppl = _train_codebook(QuantizerConfig("vq", 8, 2), codebook, data)
+  cvq_use, cvq_ppl = _train_codebook(QuantizerConfig("cvq", 8, 2), codebook, data)
   assert int(vq_use) <= 4
   assert int(cvq_use) == 8
   assert float(cvq_ppl) > 6.0 > float(vq_ppl)

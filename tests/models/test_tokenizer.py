@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from configs import tokenizer as tokenizer_config
+from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.models import scenario_norm
 from cvmdx_jax.models import tokenizer as tok
-from cvmdx_jax.runs.config import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer as train_tok
 
 

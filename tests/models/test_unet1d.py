@@ -9,9 +9,10 @@ import pytest
 
 from flax import nnx
 
+from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import layers, unet1d
 
-TINY = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
+TINY = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
                          attention_levels=(1,), num_heads=2, dropout=0.1, padded_length=128)
 
 
@@ -59,9 +60,9 @@ def test_shapes_and_param_count_tiny():
 
 def test_default_config_param_counts():
   shapes = lambda cfg: jax.eval_shape(lambda: unet1d.init_unet(cfg, jax.random.key(0))[1])
-  default = unet1d.UNetConfig(num_tokens=256)
+  default = UNetConfig(num_tokens=256)
   assert unet1d.count_params(shapes(default)) == _params_count_by_hand(default) == 27_399_298
-  reference = unet1d.UNetConfig(num_tokens=256, attention_levels=())
+  reference = UNetConfig(num_tokens=256, attention_levels=())
   n_ref = unet1d.count_params(shapes(reference))
   assert n_ref == _params_count_by_hand(reference)
   assert abs(n_ref - 22.5e6) < 0.1e6  # the official code's 22.5 M (attention only in the middle)
@@ -108,7 +109,7 @@ def test_no_retracing_across_calls():
 
 def test_bad_padding_rejected():
   with pytest.raises(ValueError, match="padded_length"):
-    unet1d.UNetConfig(padded_length=126)
+    UNetConfig(padded_length=126)
 
 
 def test_downsampling_is_centred_on_even_inputs():
@@ -128,7 +129,7 @@ def test_group_norm_epsilon_is_the_official_1e5():
   np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)
 
 
-EGO = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
+EGO = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2, cond_dim=13)
 
 

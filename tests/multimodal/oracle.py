@@ -18,7 +18,7 @@ from sklearn import exceptions
 from sklearn import mixture
 from sklearn import preprocessing
 
-from cvmdx_jax.multimodal.hypotheses import HypothesisConfig
+from cvmdx_jax.config.sampling import HypothesisConfig
 
 
 def embed(trajectories: np.ndarray, config: HypothesisConfig) -> np.ndarray:

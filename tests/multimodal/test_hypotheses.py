@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import synthetic
 from tests.multimodal import oracle

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from sklearn import cluster
 
-from cvmdx_jax.config_dataclass import ConfigFieldError
-from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.config.fields import ConfigFieldError
+from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.multimodal import gmm
 from cvmdx_jax.multimodal import hypotheses
 from cvmdx_jax.multimodal import kmeans

@@ -19,14 +19,14 @@ from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import sharding
+from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
+from cvmdx_jax.data import dataset
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
 from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.runs import tokens
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
 from cvmdx_jax.storage import atomic, checkpointing, checksums, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.storage.checksums import CorruptRunError
-from cvmdx_jax.data import dataset
-from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
 from cvmdx_jax.train import diffusion, tokenizer
 
 
@@ -47,7 +47,7 @@ def _train_tokenizer(config, workdir, **kwargs):
 
 
 def _train_diffusion(config, workdir):
-  return diffusion.train(DiffusionConfig.from_config(config), workdir)
+  return diffusion.train(DiffusionRunConfig.from_config(config), workdir)
 
 
 @pytest.fixture(scope="module")

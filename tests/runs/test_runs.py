@@ -12,13 +12,11 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax.config_dataclass import ConfigFieldError, to_dataclass
-from cvmdx_jax.diffusion import GuidanceConfig
-from cvmdx_jax.inference.sampling import SamplingConfig
-from cvmdx_jax.models import unet1d
-from cvmdx_jax.multimodal import HypothesisConfig
+from cvmdx_jax.config.fields import ConfigFieldError, to_dataclass
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig, TokenizerRunConfig
+from cvmdx_jax.config.sampling import GuidanceConfig, HypothesisConfig, SamplingConfig
 from cvmdx_jax.runs import fingerprints
-from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig, TokenizerRunConfig
 from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[2]
@@ -52,11 +50,11 @@ def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
   assert out.num_samples == 9  # left out: the dataclass default
   hash(out)  # usable as a static jit argument
   with pytest.raises(ValueError, match=r"UNetConfig: unknown field\(s\) \['channel_mul'\]"):
-    to_dataclass(unet1d.UNetConfig, {"channel_mul": [1, 2]})
+    to_dataclass(UNetConfig, {"channel_mul": [1, 2]})
 
 
 def test_run_configs_become_the_typed_configs():
-  demo = DiffusionConfig.from_config(diffusion_config.get_config("demo"))
+  demo = DiffusionRunConfig.from_config(diffusion_config.get_config("demo"))
   assert demo.diffusion.control_scale == (4.0, 0.1) and demo.sampling.clip_x0 == 1.0
   assert demo.sampling.guidance.w_max_base == 0.0 and demo.sampling.intent_prior == (2, 1, 1)
   assert (demo.sampling.sampler, demo.sampling.steps) == ("dpmpp2m", 3)  # chosen on val
@@ -68,9 +66,9 @@ def test_run_configs_become_the_typed_configs():
   assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
   assert demo.sampling.hypotheses.endpoint_weight == 0.5
   for preset in ("paper", "reference"):
-    sampling = DiffusionConfig.from_config(diffusion_config.get_config(preset)).sampling
+    sampling = DiffusionRunConfig.from_config(diffusion_config.get_config(preset)).sampling
     assert (sampling.num_samples, sampling.hypotheses) == (9, HypothesisConfig())
-  paper = DiffusionConfig.from_config(diffusion_config.get_config("paper"))
+  paper = DiffusionRunConfig.from_config(diffusion_config.get_config("paper"))
   assert paper.diffusion.class_weights == (1.0, 1.0, 1.0) and not paper.diffusion.weighted_classes
   assert demo.model.channel_mult == (1, 2, 2, 2) and demo.model.attention_levels == (3,)
   assert demo.model.num_tokens == 0 and demo.with_tokens(60).model.null_token == 60
@@ -80,7 +78,7 @@ def test_run_configs_become_the_typed_configs():
   assert not paper.diffusion.intent_conditioning and paper.model.num_intents == 0
   unclipped = diffusion_config.get_config("demo")
   unclipped.sampling.clip_x0 = 0.0  # 0 = no clipping
-  assert DiffusionConfig.from_config(unclipped).sampling.clip_x0 is None
+  assert DiffusionRunConfig.from_config(unclipped).sampling.clip_x0 is None
   tok = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny,quantizer=vq,q=5"))
   assert tok.model.quantizer.kind == "vq" and tok.model.quantizer.codebook_size == 5
   assert tok.model.quantizer.latent_dim == tok.model.encoder.latent_dim == 4
@@ -110,16 +108,16 @@ def _with(config, field: str, value):
 ])
 def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value, problem):
   with pytest.raises(ConfigFieldError) as error:
-    DiffusionConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
+    DiffusionRunConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
   assert error.value.field == field and problem in error.value.problem
 
 
 @pytest.mark.parametrize("value", [1, 0, 2.5])
 def test_distill_teacher_substeps_must_be_an_integer_of_at_least_two(value):
   with pytest.raises(ConfigFieldError) as error:
-    DistillConfig(teacher_substeps=value)
+    DistillRunConfig(teacher_substeps=value)
   assert error.value.field == "teacher_substeps" and "integer >= 2" in error.value.problem
-  assert DistillConfig(teacher_substeps=5).teacher_substeps == 5
+  assert DistillRunConfig(teacher_substeps=5).teacher_substeps == 5
 
 
 @pytest.mark.parametrize("field, value", [
@@ -137,7 +135,7 @@ def test_cond_hidden_enters_the_fingerprint_only_when_set():
   config = diffusion_config.get_config("demo")
   del config.model["cond_hidden"]
   del config.diffusion["intent_conditioning"]  # a run before either field
-  before = DiffusionConfig.from_config(config).with_tokens(8)
+  before = DiffusionRunConfig.from_config(config).with_tokens(8)
   assert before.model.cond_hidden == ()
   meta = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
   fingerprint = fingerprints.diffusion(before, "data", meta)

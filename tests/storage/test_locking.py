@@ -12,10 +12,10 @@ import pytest
 from configs import dataset as dataset_config
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax.storage import locking
-from cvmdx_jax.evaluation import report
+from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.data import dataset
-from cvmdx_jax.runs.config import DiffusionConfig, TokenizerRunConfig
+from cvmdx_jax.evaluation import report
+from cvmdx_jax.storage import locking
 from cvmdx_jax.train import diffusion, tokenizer
 from tests.subprocess_env import environ
 from tests.train import toy
@@ -81,7 +81,7 @@ def _tokenizer(workdir):
 
 
 def _diffusion(workdir):
-  diffusion.train(DiffusionConfig.from_config(diffusion_config.get_config("tiny")), workdir)
+  diffusion.train(DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")), workdir)
 
 
 def _dataset(workdir):

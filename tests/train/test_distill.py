@@ -7,11 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.diffusion import distillation
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import distill
 
-TINY = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2),
+TINY = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2),
                          attention_levels=(1,), num_heads=2, groups=8)
 
 

@@ -10,16 +10,18 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from configs import distill as distill_config
-from cvmdx_jax.config_dataclass import ConfigFieldError
+from cvmdx_jax.config.fields import ConfigFieldError
+from cvmdx_jax.config.models import UNetConfig
+from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints
-from cvmdx_jax.runs.config import DiffusionConfig, DistillConfig
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill
 
-EGO = unet1d.UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
+EGO = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2, cond_dim=10, cond_hidden=(24, 12))
 INTENT = dataclasses.replace(EGO, num_intents=3, intent_features=7)
 META = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
@@ -29,7 +31,7 @@ def _demo(**diffusion):
   config = diffusion_config.get_config("demo")
   for field, value in diffusion.items():
     config.diffusion[field] = value
-  return DiffusionConfig.from_config(config).with_tokens(8)
+  return DiffusionRunConfig.from_config(config).with_tokens(8)
 
 
 def test_the_classifier_is_an_mlp_on_the_ego_features_and_adds_only_itself():
@@ -67,7 +69,7 @@ def test_the_train_step_adds_the_cross_entropy_and_trains_the_classifier():
                          jax.nn.one_hot(label, 3)], -1)
   batch = {"x0": 0.3 * jax.random.normal(jax.random.key(1), (b, 125, 2)), "q": jnp.arange(b) % 5,
            "ego": ego, "weight": jnp.array([1.0] * (b - 1) + [0.0]), "label": label}
-  tx = diffusion_train.optimizer(DiffusionConfig().train, 10)
+  tx = diffusion_train.optimizer(DiffusionRunConfig().train, 10)
   steps = {}
   for name, cfg in (("plain", EGO), ("intent", INTENT)):
     g = unet1d.make_graphdef(cfg)
@@ -107,7 +109,7 @@ def test_sample_rows_of_features_each_condition_their_own_sample():
   """ego (N, F): sample i sees row i in both guidance branches; equal rows are (F,)."""
   g, p = unet1d.init_unet(EGO, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
-  config = dataclasses.replace(sampling.SamplingConfig(), num_samples=4, steps=2)
+  config = dataclasses.replace(SamplingConfig(), num_samples=4, steps=2)
   run = lambda ego: sampling.sample_controls(g, p, 1, 0.5, jax.random.key(3),
                                              schedule=cosine_schedule(1000), null_token=5,
                                              config=config, ego=ego)
@@ -124,7 +126,7 @@ def test_sample_rows_of_features_each_condition_their_own_sample():
 def test_predict_batch_conditions_each_sample_on_a_class_drawn_from_the_classifier():
   g, p = unet1d.init_unet(INTENT, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
-  config = dataclasses.replace(sampling.SamplingConfig(), num_samples=4, steps=2)
+  config = dataclasses.replace(SamplingConfig(), num_samples=4, steps=2)
   denoiser = _demo(intent_conditioning=True).diffusion
   b = 2
   ego = jax.random.normal(jax.random.key(4), (b, 7))
@@ -152,7 +154,7 @@ def test_the_intent_prior_reweights_the_class_draws():
   # a classifier with equal logits for every input: p = (1/3, 1/3, 1/3)
   p["intent_mlp"][2] = jax.tree.map(jnp.zeros_like, p["intent_mlp"][2])
   # keep-lane weight 2: (2, 1, 1) / 4, so 4 systematic draws are exactly kl, kl, lcr, lcl
-  config = sampling.SamplingConfig(num_samples=4, steps=2, intent_prior=(2, 1, 1))
+  config = SamplingConfig(num_samples=4, steps=2, intent_prior=(2, 1, 1))
   denoiser = dataclasses.replace(_demo(intent_conditioning=True).diffusion,
                                  conditioning="ego_film")
   ego = jax.random.normal(jax.random.key(4), (1, 7))
@@ -170,10 +172,10 @@ def test_the_intent_prior_reweights_the_class_draws():
     sampling.predict_batch(g, p, jnp.array([1]), jnp.zeros(1), jnp.full(1, 30.0), jnp.zeros(1),
                            keys, ego, denoiser_config=without, **kw)
   with pytest.raises(ConfigFieldError, match="3 weights") as error:
-    sampling.SamplingConfig(intent_prior=(2, 1))
+    SamplingConfig(intent_prior=(2, 1))
   assert error.value.field == "intent_prior"
   with pytest.raises(ConfigFieldError):
-    sampling.SamplingConfig(intent_prior=(0, 1, 1))
+    SamplingConfig(intent_prior=(0, 1, 1))
 
 
 def test_configs_check_and_fingerprint_the_intent_conditioning():
@@ -194,7 +196,7 @@ def test_configs_check_and_fingerprint_the_intent_conditioning():
 
 def test_the_student_keeps_the_teachers_classifier():
   teacher = _demo(intent_conditioning=True)
-  student = distill.student_config(teacher, DistillConfig.from_config(
+  student = distill.student_config(teacher, DistillRunConfig.from_config(
       distill_config.get_config("tiny")))
   assert student.model.num_intents == 3 and student.model.cond_dim == teacher.model.cond_dim + 1
   small = dict(base_channels=16, channel_mult=(1, 2), attention_levels=(1,), groups=8)

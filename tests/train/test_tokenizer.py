@@ -9,9 +9,9 @@ import scipy.stats
 
 from configs import common
 from configs import tokenizer as tokenizer_config
+from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
-from cvmdx_jax.runs.config import TokenizerRunConfig
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import tokenizer as train_tok
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from configs import baseline as baseline_config
-from cvmdx_jax.config_dataclass import ConfigFieldError
+from cvmdx_jax.config.fields import ConfigFieldError
+from cvmdx_jax.config.runs import BaselineRunConfig
 from cvmdx_jax.runs import layout, loaders
-from cvmdx_jax.runs.config import BaselineConfig
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import baseline
 from tests.train import baseline_data
@@ -36,7 +36,7 @@ def _config(dirs, **train):
 
 
 def _train(config, workdir):
-  return baseline.train(BaselineConfig.from_config(config), workdir)
+  return baseline.train(BaselineRunConfig.from_config(config), workdir)
 
 
 def _curve(workdir):
@@ -109,8 +109,8 @@ def test_bad_settings_are_refused_naming_the_field(dirs):
   for field, value in (("select_metric", "accuracy"), ("end_lr_fraction", 1.5),
                        ("warmup_steps", -1)):
     with pytest.raises(ConfigFieldError, match=f"train.{field}"):
-      BaselineConfig.from_config(_config(dirs, **{field: value}))
+      BaselineRunConfig.from_config(_config(dirs, **{field: value}))
   config = _config(dirs)
   config.loss.cls_weight = -1.0
   with pytest.raises(ConfigFieldError, match="loss.cls_weight"):
-    BaselineConfig.from_config(config)
+    BaselineRunConfig.from_config(config)

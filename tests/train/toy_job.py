@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from cvmdx_jax import sharding
+from cvmdx_jax.train import preemption
 from tests.train import toy
 
 
@@ -30,16 +31,16 @@ def task(name: str, m: int):
   rng = np.random.default_rng(0)
   if name == "diffusion":
     from configs import diffusion as diffusion_config
-    from cvmdx_jax.runs.config import DiffusionConfig
+    from cvmdx_jax.config.runs import DiffusionRunConfig
     from cvmdx_jax.train import diffusion
-    config = DiffusionConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(4)
+    config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(4)
     _, init_fn, step_fn = diffusion.init_and_step(config, total_steps=100)
     data = {"x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
             "q": rng.integers(0, 4, m).astype(np.int32)}
     return init_fn, step_fn, data
   from configs import tokenizer as tokenizer_config
   from cvmdx_jax.models import tokenizer as tokenizer_lib
-  from cvmdx_jax.runs.config import TokenizerRunConfig
+  from cvmdx_jax.config.runs import TokenizerRunConfig
   from cvmdx_jax.train import tokenizer
   run = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny"))
   model_cfg, tx = run.model, tokenizer.optimizer(run.train)
@@ -76,6 +77,9 @@ def main() -> int:
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
+  except preemption.Stopped as e:
+    print(f"stopped: {e.message}", file=sys.stderr)
+    return e.code
   loss = None
   if sharding.is_primary():
     with open(f"{a.workdir}/metrics.jsonl") as f:

@@ -1,65 +1,26 @@
-"""The typed configs of the trainers, built and checked once at the entry point.
+"""The typed run configs of the trainers, built and checked once at the entry point.
 
-    config = DiffusionConfig.from_config(configs.diffusion.get_config("demo"))
+    config = DiffusionRunConfig.from_config(configs.diffusion.get_config("demo"))
 
-`from_config` turns a ConfigDict of configs/tokenizer.py, configs/diffusion.py or
-configs/baseline.py into a
-frozen dataclass (`config_dataclass.to_dataclass`); every field's range is checked by the
-dataclass that holds it (`ConfigFieldError` names the dotted field, e.g.
-"diffusion.class_weights"). Below the entry points only these dataclasses travel.
-A diffusion run stores its `DiffusionConfig` as `config.json` (`runs.layout`), with
-`model.num_tokens` set from the tokens it was trained on; so does a baseline run its
-`BaselineConfig`.
+`from_config` turns a ConfigDict of configs/tokenizer.py, configs/diffusion.py,
+configs/distill.py or configs/baseline.py into a frozen dataclass (`fields.to_dataclass`);
+every field's range is checked by the dataclass that holds it (`ConfigFieldError` names the
+dotted field, e.g. "diffusion.class_weights"). Below the entry points only these
+dataclasses travel. A diffusion run stores its `DiffusionRunConfig` as `config.json`
+(`runs.layout`), with `model.num_tokens` set from the tokens it was trained on; so does a
+baseline run its `BaselineRunConfig`.
 """
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any
 
-from cvmdx_jax.config_dataclass import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, SEED,
-                                        ConfigFieldError, Range, check_ranges, to_dataclass)
-from cvmdx_jax.inference.sampling import SamplingConfig
-from cvmdx_jax.models import quantizer as quantizer_lib
-from cvmdx_jax.models.multiple_choice import MultipleChoiceConfig
-from cvmdx_jax.models import tokenizer as tokenizer_lib
-from cvmdx_jax.models.scenario_encoder import EncoderConfig
-from cvmdx_jax.models.unet1d import UNetConfig
-from cvmdx_jax.targets import DenoiserConfig
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-  """The `train` section of the tokeniser: batch, epochs, Adam learning rate, clipping,
-  checkpoints (configs/tokenizer.py documents the fields)."""
-
-  batch_size: int = 64
-  num_epochs: int = 100
-  learning_rate: float = 5e-4
-  grad_clip: float = 1.0
-  checkpoint_every: int = 5
-  keep: int = 2
-
-  RANGES: ClassVar = {"batch_size": POSITIVE, "num_epochs": POSITIVE,
-                      "learning_rate": POSITIVE, "grad_clip": NON_NEGATIVE,
-                      "checkpoint_every": POSITIVE, "keep": POSITIVE}
-
-  def __post_init__(self):
-    check_ranges(self, self.RANGES)
-
-
-@dataclasses.dataclass(frozen=True)
-class DiffusionTrainConfig(TrainConfig):
-  """The `train` section of the denoiser: `TrainConfig` plus the AdamW schedule and the EMA
-  (configs/diffusion.py documents the fields)."""
-
-  batch_size: int = 256
-  warmup_steps: int = 3000
-  min_lr: float = 1e-6
-  weight_decay: float = 0.0
-  ema_decay: float = 0.9999
-
-  RANGES: ClassVar = {**TrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
-                      "min_lr": NON_NEGATIVE, "weight_decay": NON_NEGATIVE,
-                      "ema_decay": BELOW_ONE}
+from cvmdx_jax.config.denoiser import DenoiserConfig
+from cvmdx_jax.config.fields import NON_NEGATIVE, POSITIVE, Range, SEED, check_ranges, to_dataclass
+from cvmdx_jax.config.models import (EncoderConfig, MultipleChoiceConfig, QuantizerConfig,
+                                     TokenizerConfig, UNetConfig)
+from cvmdx_jax.config.sampling import SamplingConfig
+from cvmdx_jax.config.train import BaselineTrainConfig, DiffusionTrainConfig, TokenizerTrainConfig
+from cvmdx_jax.errors import UserError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,9 +47,9 @@ class TokenizerRunConfig:
   splits: tuple[str, ...] = ()
   seed: int = 0
   encode_batch: int = 512
-  model: tokenizer_lib.TokenizerConfig = tokenizer_lib.TokenizerConfig()
+  model: TokenizerConfig = TokenizerConfig()
   uncertainty: UncertaintyConfig = UncertaintyConfig()
-  train: TrainConfig = TrainConfig()
+  train: TokenizerTrainConfig = TokenizerTrainConfig()
 
   def __post_init__(self):
     _check_run(self)
@@ -100,15 +61,15 @@ class TokenizerRunConfig:
     ValueError naming the field when one is out of range)."""
     sections = dict(config.items())
     encoder = to_dataclass(EncoderConfig, config.model.encoder, where="model.encoder")
-    quantizer = to_dataclass(quantizer_lib.QuantizerConfig, sections.pop("quantizer"),
+    quantizer = to_dataclass(QuantizerConfig, sections.pop("quantizer"),
                              where="quantizer", latent_dim=encoder.latent_dim)
-    model = to_dataclass(tokenizer_lib.TokenizerConfig, sections.pop("model"), where="model",
+    model = to_dataclass(TokenizerConfig, sections.pop("model"), where="model",
                          encoder=encoder, quantizer=quantizer)
     return to_dataclass(cls, sections, model=model)
 
 
 @dataclasses.dataclass(frozen=True)
-class DiffusionConfig:
+class DiffusionRunConfig:
   """A diffusion run (configs/diffusion.py).
 
   Attributes:
@@ -135,19 +96,19 @@ class DiffusionConfig:
     _check_run(self)
     cond_dim = self.diffusion.cond_dim
     if self.model.cond_dim != cond_dim:
-      raise ValueError(f"model.cond_dim={self.model.cond_dim}: the {self.diffusion.conditioning!r} "
+      raise UserError(f"model.cond_dim={self.model.cond_dim}: the {self.diffusion.conditioning!r} "
                        f"conditioning has {cond_dim - self.diffusion.guidance_input} ego-motion "
                        "features (cvmdx_jax/ego_motion.py, FEATURES)"
                        f"{' and the guidance weight' if self.diffusion.guidance_input else ''}")
     d = self.diffusion
     if (self.model.num_intents, self.model.intent_features) != (d.num_intents,
                                                                 d.intent_features):
-      raise ValueError(f"model.num_intents={self.model.num_intents}, model.intent_features="
+      raise UserError(f"model.num_intents={self.model.num_intents}, model.intent_features="
                        f"{self.model.intent_features}: diffusion.intent_conditioning="
                        f"{d.intent_conditioning} needs {d.num_intents}, {d.intent_features}")
 
   @classmethod
-  def from_config(cls, config: Any) -> "DiffusionConfig":
+  def from_config(cls, config: Any) -> "DiffusionRunConfig":
     """The typed run config of a configs/diffusion.py ConfigDict (or of a run's
     config.json); ConfigFieldError or ValueError naming the field when one is bad."""
     sections = dict(config.items())
@@ -160,18 +121,18 @@ class DiffusionConfig:
     return to_dataclass(cls, sections, diffusion=diffusion,
                         model=to_dataclass(UNetConfig, model, where="model"))
 
-  def with_tokens(self, num_tokens: int) -> "DiffusionConfig":
+  def with_tokens(self, num_tokens: int) -> "DiffusionRunConfig":
     """This config with the U-Net sized for `num_tokens` tokens (Q; token Q is null)."""
     return dataclasses.replace(self, model=dataclasses.replace(self.model,
                                                                num_tokens=num_tokens))
 
 
-# DistillConfig.teacher_substeps: k teacher steps a student step
+# DistillRunConfig.teacher_substeps: k teacher steps a student step
 _SUBSTEPS = Range("an integer >= 2", lambda v: v >= 2 and v == int(v))
 
 
 @dataclasses.dataclass(frozen=True)
-class DistillConfig:
+class DistillRunConfig:
   """A distillation run (configs/distill.py, `cvmdx_jax.train.distill`): one stage from a
   teacher run. A guided denoiser teaches a guidance student (w as an input), or with
   `guided_progressive` a progressive student for `steps` steps directly; a guidance or
@@ -206,41 +167,9 @@ class DistillConfig:
     check_ranges(self, {"steps": POSITIVE, "teacher_substeps": _SUBSTEPS})
 
   @classmethod
-  def from_config(cls, config: Any) -> "DistillConfig":
+  def from_config(cls, config: Any) -> "DistillRunConfig":
     """The typed run config of a configs/distill.py ConfigDict."""
     return to_dataclass(cls, config)
-
-
-# val read-outs of the baseline's `train.baseline.evaluate` the epoch can be chosen on
-# (lower is better)
-SELECT_METRICS = ("loss", "wta_ade", "min_ade", "min_fde", "ml_ade", "ml_fde", "mean_ade",
-                  "mean_fde")
-
-
-@dataclasses.dataclass(frozen=True)
-class BaselineTrainConfig(TrainConfig):
-  """The `train` section of the multiple-choice baseline: `TrainConfig` plus the AdamW
-  schedule and the val read-out that picks the epoch (configs/baseline.py documents the
-  fields)."""
-
-  batch_size: int = 256
-  num_epochs: int = 30
-  learning_rate: float = 2e-3
-  checkpoint_every: int = 10
-  keep: int = 1
-  warmup_steps: int = 100
-  end_lr_fraction: float = 0.01
-  weight_decay: float = 1e-4
-  select_metric: str = "min_ade"
-
-  RANGES: ClassVar = {**TrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
-                      "end_lr_fraction": FRACTION, "weight_decay": NON_NEGATIVE}
-
-  def __post_init__(self):
-    super().__post_init__()
-    if self.select_metric not in SELECT_METRICS:
-      raise ConfigFieldError("select_metric", self.select_metric,
-                             f"must be one of {SELECT_METRICS}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,7 +184,7 @@ class WTALossConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class BaselineConfig:
+class BaselineRunConfig:
   """A multiple-choice baseline run (configs/baseline.py, `cvmdx_jax.train.baseline`).
 
   Attributes:
@@ -279,7 +208,7 @@ class BaselineConfig:
     _check_run(self)
 
   @classmethod
-  def from_config(cls, config: Any) -> "BaselineConfig":
+  def from_config(cls, config: Any) -> "BaselineRunConfig":
     """The typed run config of a configs/baseline.py ConfigDict (or of a run's
     config.json); ConfigFieldError or ValueError naming the field when one is bad."""
     sections = dict(config.items())
@@ -288,7 +217,7 @@ class BaselineConfig:
     return to_dataclass(cls, sections, model=to_dataclass(MultipleChoiceConfig, model,
                                                           where="model"))
 
-  def with_tokens(self, num_tokens: int) -> "BaselineConfig":
+  def with_tokens(self, num_tokens: int) -> "BaselineRunConfig":
     """This config with the MLP's token embedding sized for `num_tokens` tokens (Q)."""
     return dataclasses.replace(self, model=dataclasses.replace(self.model,
                                                                num_tokens=num_tokens))

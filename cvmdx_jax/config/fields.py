@@ -19,10 +19,12 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
+from cvmdx_jax.errors import UserError
+
 T = TypeVar("T")
 
 
-class ConfigFieldError(ValueError):
+class ConfigFieldError(UserError):
   """A config field with a value out of its range; `field` is its dotted config path."""
 
   def __init__(self, field: str, value: Any, problem: str):
@@ -98,7 +100,7 @@ def to_dataclass(cls: type[T], section: Any, *, where: str = "", **overrides) ->
   fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
   unknown = sorted(set(items) - set(fields))
   if unknown:
-    raise ValueError(f"{where or cls.__name__}: unknown field(s) {unknown}; known: "
+    raise UserError(f"{where or cls.__name__}: unknown field(s) {unknown}; known: "
                      f"{sorted(fields)}")
   hints = typing.get_type_hints(cls)
   kwargs = {}
@@ -115,4 +117,4 @@ def to_dataclass(cls: type[T], section: Any, *, where: str = "", **overrides) ->
   except ValueError as e:
     if not where or str(e).startswith(where):
       raise
-    raise ValueError(f"{where}: {e}") from None
+    raise UserError(f"{where}: {e}") from None
