@@ -16,8 +16,8 @@ class _Located:
     where = [f"file {self.path}"]
     if row is not None:
       where.append(f"row {row}")
-    if column is not None:
-      where.append(f"column '{column}'")
+    if column is not None:  # a column name from a hostile header is cut short
+      where.append(f"column '{str(column)[:80]}{'...' if len(str(column)) > 80 else ''}'")
     super().__init__(f"{', '.join(where)}: {message}")
 
 

@@ -35,12 +35,13 @@ the first such row and the column, one per column, and the recording is read.
 
 Errors name the file, the 1-based line (the header is line 1) and the column (none for a
 missing or empty file, or a line with more fields than the header). A blank line inside a
-file is an error at its line; trailing blank lines are ignored.
+file is an error at its line; trailing blank lines are ignored. Each file is read in
+bounded memory (`data.highd_csv`): a file, line or row count beyond highD's, a binary file
+or a line with more fields than the header is refused before it is parsed.
 """
 
 import dataclasses
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -49,58 +50,24 @@ import pandas as pd
 from cvmdx_jax import constants
 from cvmdx_jax.data import extract
 from cvmdx_jax.data import scenarios as scenarios_lib
-from cvmdx_jax.data.errors import DataError, DataWarning
+from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.data.highd_csv import read_table
+from cvmdx_jax.data.highd_format import (  # the format's names, read here and by users
+    ABSURD, COLUMNS, NEIGHBOUR_COLUMNS, POSITION, RANGES, READ_COLUMNS,
+    RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS)
 
-TRACKS_COLUMNS = (
-    "frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity", "xAcceleration",
-    "yAcceleration", "frontSightDistance", "backSightDistance", "dhw", "thw", "ttc",
-    "precedingXVelocity", "precedingId", "followingId", "leftPrecedingId", "leftAlongsideId",
-    "leftFollowingId", "rightPrecedingId", "rightAlongsideId", "rightFollowingId", "laneId")
-TRACKS_META_COLUMNS = (
-    "id", "width", "height", "initialFrame", "finalFrame", "numFrames", "class",
-    "drivingDirection", "traveledDistance", "minXVelocity", "maxXVelocity", "meanXVelocity",
-    "minDHW", "minTHW", "minTTC", "numLaneChanges")
-RECORDING_META_COLUMNS = (
-    "id", "frameRate", "locationId", "speedLimit", "month", "weekDay", "startTime", "duration",
-    "totalDrivenDistance", "totalDrivenTime", "numVehicles", "numCars", "numTrucks",
-    "upperLaneMarkings", "lowerLaneMarkings")
-_TEXT_COLUMNS = ("class", "month", "weekDay", "startTime", "upperLaneMarkings",
-                 "lowerLaneMarkings")
-# Neighbour columns in `constants.VEHICLE_SLOTS[1:]` order.
-NEIGHBOUR_COLUMNS = tuple(f"{slot}Id" for slot in constants.VEHICLE_SLOTS[1:])
-COLUMNS = {"tracks": TRACKS_COLUMNS, "tracksMeta": TRACKS_META_COLUMNS,
-           "recordingMeta": RECORDING_META_COLUMNS}
-# The columns `read_recording` uses (checked strictly); the others only draw DataWarnings.
-READ_COLUMNS = {
-    "tracks": ("frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity",
-               "laneId", *NEIGHBOUR_COLUMNS),
-    "tracksMeta": ("id", "initialFrame", "finalFrame", "numFrames", "drivingDirection"),
-    "recordingMeta": ("frameRate", "upperLaneMarkings", "lowerLaneMarkings")}
-
-ABSURD = 1e9  # bound on every numeric cell
-MAX_ID = 1_000_000  # track ids index dense per-id arrays
-MAX_FRAME = 10_000_000
-_POSITION, _LENGTH, _WIDTH = (-1e4, 1e4), (0.0, 50.0), (0.0, 10.0)
-_ACCEL = (-20.0, 20.0)
-# column -> (low, high, integer); a 0.0 low bound of a size is exclusive ("> 0"); outside
-# READ_COLUMNS a value out of range is a warning.
-RANGES = {
-    "tracks": {
-        "frame": (0, MAX_FRAME, True), "id": (1, MAX_ID, True), "x": (*_POSITION, False),
-        "y": (*_POSITION, False), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
-        "xVelocity": (-100.0, 100.0, False), "yVelocity": (-20.0, 20.0, False),
-        "xAcceleration": (*_ACCEL, False), "yAcceleration": (*_ACCEL, False),
-        "laneId": (1, 100, True), **{c: (0, MAX_ID, True) for c in NEIGHBOUR_COLUMNS}},
-    "tracksMeta": {
-        "id": (1, MAX_ID, True), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
-        "initialFrame": (0, MAX_FRAME, True), "finalFrame": (0, MAX_FRAME, True),
-        "numFrames": (1, MAX_FRAME, True), "drivingDirection": (1, 2, True)},
-    "recordingMeta": {"frameRate": (1, 1000, True)},
-}
-_SIZE_COLUMNS = ("width", "height")
 MAX_DIRECTION_SLACK = 1.0  # m/s of xVelocity against the driving direction
 MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
 MAX_LATERAL_STEP = 20.0 * constants.DT  # m per frame in y
+
+
+def recordings_dir(data_dir) -> Path:
+  """The folder of the recordings: `data_dir`, or its `data/` subfolder where only that one
+  holds *_tracks.csv files (the official download's layout, highD-dataset-v1.0/data/)."""
+  base = Path(data_dir)
+  if not any(base.glob("*_tracks.csv")) and any((base / "data").glob("*_tracks.csv")):
+    return base / "data"
+  return base
 
 
 def _tracks_files(data_dir) -> dict:
@@ -117,8 +84,9 @@ def _tracks_files(data_dir) -> dict:
 def recording_paths(data_dir, recording_id: int) -> dict:
   """{'tracks', 'tracksMeta', 'recordingMeta'} -> Path of recording `recording_id`: the
   prefix of its tracks file in `data_dir` ('1_', '01_', '002_'), two digits when there is
-  none (also the names a writer uses); DataError when two tracks files have this id."""
-  base = Path(data_dir)
+  none (also the names a writer uses); DataError when two tracks files have this id.
+  `data_dir` may also be the folder above `data/` (`recordings_dir`)."""
+  base = recordings_dir(data_dir)
   names = _tracks_files(base).get(recording_id, [f"{recording_id:02d}_tracks.csv"])
   if len(names) > 1:
     raise DataError(base / names[0], f"recording {recording_id} has {len(names)} tracks "
@@ -128,106 +96,6 @@ def recording_paths(data_dir, recording_id: int) -> dict:
                                                           "recordingMeta")}
 
 
-def _read_table(path: Path, kind: str) -> pd.DataFrame:
-  """Reads one CSV of `kind` ('tracks', 'tracksMeta', 'recordingMeta'); checks its header,
-  numeric cells, NaNs and `RANGES`: DataError in `READ_COLUMNS`, DataWarning elsewhere."""
-  if not path.is_file():
-    raise DataError(path, "file not found")
-  try:
-    # Blank lines are kept (as empty rows) so that row numbers stay the file's lines.
-    frame = pd.read_csv(path, skipinitialspace=True, skip_blank_lines=False)
-  except pd.errors.EmptyDataError as err:
-    raise DataError(path, "empty file, no header", row=1) from err
-  except UnicodeDecodeError as err:
-    raise DataError(path, "not UTF-8 text", *_locate_byte(path)) from err
-  except pd.errors.ParserError as err:
-    # pandas names a 1-based "line N" (too many fields) or a 0-based "row N" (open quote).
-    line, row = re.search(r"line (\d+)", str(err)), re.search(r"row (\d+)", str(err))
-    where = int(line.group(1)) if line else int(row.group(1)) + 1 if row else None
-    raise DataError(path, f"unreadable CSV ({str(err).strip()})", row=where) from err
-  header = list(frame.columns)
-  for name in COLUMNS[kind]:
-    if name not in header:
-      raise DataError(path, f"missing column (header has {header})", row=1, column=name)
-  filled = np.flatnonzero(frame.notna().any(axis=1).to_numpy())
-  frame = frame.iloc[:filled[-1] + 1 if len(filled) else 0]  # trailing blank lines dropped
-  if len(frame) == 0:
-    raise DataError(path, "no data rows", row=2)
-  unread = []  # warned about once every read column has passed
-  for name in COLUMNS[kind]:
-    problem = _column_problem(frame, name, RANGES[kind].get(name, (-ABSURD, ABSURD, False)))
-    if problem is None:
-      continue
-    row, message, count = problem
-    if name in READ_COLUMNS[kind]:
-      raise DataError(path, message, row=row + 2, column=name)
-    cells = f"{count} cells of this column are bad" if count > 1 else "the only bad cell"
-    unread.append(DataWarning(path, f"{message} ({cells}); the column is not read, the "
-                              "recording is used", row=row + 2, column=name))
-  for warning in unread:
-    warnings.warn(warning, stacklevel=3)
-  return frame
-
-
-def _column_problem(frame: pd.DataFrame, name: str, bounds) -> tuple | None:
-  """(0-based row, message, number of bad cells) of the first empty, non-numeric,
-  non-finite or out-of-`bounds` cell of column `name`, or None; a numeric column is
-  converted to float in place (bad cells NaN)."""
-  values = original = frame[name]
-  if name in _TEXT_COLUMNS:
-    bad = values.isna().to_numpy()
-    if not bad.any():
-      return None
-    return int(np.argmax(bad)), "empty value (truncated file?)", int(bad.sum())
-  if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
-    values = values.astype(str)
-  numbers = values if pd.api.types.is_numeric_dtype(values) else pd.to_numeric(
-      values, errors="coerce")
-  x = numbers.to_numpy(np.float64)
-  text = np.isnan(x) & original.notna().to_numpy()
-  outside = _outside(name, x, bounds)
-  bad = text | ~np.isfinite(x) | outside
-  if numbers is not values:
-    frame[name] = numbers
-  if not bad.any():
-    return None
-  row = int(np.argmax(bad))
-  if text[row]:
-    message = f"non-numeric value {original.iloc[row]!r}"
-  elif not np.isfinite(x[row]):
-    message = "empty, NaN or infinite value (truncated file?)"
-  else:
-    low, high, integer = bounds
-    kind = "a whole number in" if integer else "in"
-    interval = f"(0, {high}]" if name in _SIZE_COLUMNS else f"[{low:g}, {high:g}]"
-    message = f"value {x[row]:g} is not {kind} {interval}"
-  return row, message, int(bad.sum())
-
-
-def _locate_byte(path: Path) -> tuple:
-  """(1-based line, header column) of the first byte that is not UTF-8."""
-  data = path.read_bytes()
-  try:
-    data.decode("utf-8")
-    return None, None
-  except UnicodeDecodeError as err:
-    start = err.start
-  field = data.count(b",", data.rfind(b"\n", 0, start) + 1, start)
-  header = data.split(b"\n", 1)[0].decode("utf-8", errors="replace").strip().split(",")
-  return data.count(b"\n", 0, start) + 1, header[field] if field < len(header) else None
-
-
-def _outside(name: str, values: np.ndarray, bounds) -> np.ndarray:
-  """Finite `values` outside `bounds` = (low, high, integer) (a size: also <= 0)."""
-  low, high, integer = bounds
-  bad = (values > high) | (values < low) | (np.abs(values) > ABSURD)
-  if name in _SIZE_COLUMNS:
-    bad |= values <= 0
-  if integer:
-    bad |= values != np.round(values)
-  return bad & np.isfinite(values)
-
-
 def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
   """Parses '8.51;12.59;16.43' (>= 2 finite ascending values within +-1e4 m)."""
   try:
@@ -235,7 +103,7 @@ def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
   except ValueError:
     values = np.array([np.nan])
   if (len(values) < 2 or not np.all(np.isfinite(values))
-      or np.any(np.abs(values) > _POSITION[1]) or np.any(np.diff(values) <= 0)):
+      or np.any(np.abs(values) > POSITION[1]) or np.any(np.diff(values) <= 0)):
     raise DataError(path, f"lane markings {text!r} are not >= 2 ascending numbers "
                     "separated by ';'", row=2, column=column)
   return values
@@ -297,14 +165,14 @@ class Recording:
 def read_recording(data_dir, recording_id: int) -> Recording:
   """Reads and validates recording `recording_id` of `data_dir`; raises DataError."""
   paths = recording_paths(data_dir, recording_id)
-  rec_meta = _read_table(paths["recordingMeta"], "recordingMeta")
+  rec_meta = read_table(paths["recordingMeta"], "recordingMeta")
   if int(rec_meta["frameRate"].iloc[0]) != constants.FRAME_RATE_HZ:
     raise DataError(paths["recordingMeta"], f"frame rate {rec_meta['frameRate'].iloc[0]}, "
                     f"expected {constants.FRAME_RATE_HZ}", row=2, column="frameRate")
   for column in ("upperLaneMarkings", "lowerLaneMarkings"):
     _lane_markings(paths["recordingMeta"], rec_meta[column].iloc[0], column)
-  meta = _read_table(paths["tracksMeta"], "tracksMeta")
-  tracks = _read_table(paths["tracks"], "tracks")
+  meta = read_table(paths["tracksMeta"], "tracksMeta")
+  tracks = read_table(paths["tracks"], "tracks")
   meta_path, path = paths["tracksMeta"], paths["tracks"]
   bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
   if bad.any():
@@ -376,7 +244,7 @@ def read_recording(data_dir, recording_id: int) -> Recording:
 def available_recordings(data_dir) -> list[int]:
   """Ids of the recordings in `data_dir` (its *_tracks.csv files, see `recording_paths`),
   sorted."""
-  return sorted(_tracks_files(data_dir))
+  return sorted(_tracks_files(recordings_dir(data_dir)))
 
 
 def load_scenarios(data_dir, recording_ids, config=None) -> scenarios_lib.Scenarios:
