@@ -1,6 +1,8 @@
 """`DataError`: bad input data, naming the file, row and column at fault; `DataWarning`:
 the same for a bad cell the pipeline does not read."""
 
+from cvmdx_jax.errors import UserError
+
 
 class _Located:
   """Message prefix `file <path>, row <row>, column '<column>': `.
@@ -21,7 +23,7 @@ class _Located:
     super().__init__(f"{', '.join(where)}: {message}")
 
 
-class DataError(_Located, ValueError):
+class DataError(_Located, UserError):
   """Bad input data (attributes of `_Located`)."""
 
 
