@@ -29,9 +29,9 @@ from configs import distill as distill_config
 from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
+from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
                                    TokenizerRunConfig)
-from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data import sumo_plan
 from cvmdx_jax.evaluation import animation, report

@@ -50,6 +50,7 @@ DIFF = "--config=configs/diffusion.py:tiny"
 DATA = "--config=configs/dataset.py:tiny"
 EVAL = "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty --data_dir={T}/empty"
 BASE = "--config=configs/baseline.py:tiny"
+MDN = "--config=configs/mdn.py:tiny"
 DIST = "--config=configs/distill.py:tiny"
 LONG = "n" * 300  # a path component longer than any file system allows (ENAMETOOLONG)
 CASES = [
@@ -113,6 +114,14 @@ CASES = [
     ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.source=highd "
      "--config.highd_dir={T}/nosuch", "--config.highd_dir="),
     ("make_dataset", f"{DATA} --data_dir={{T}}/locked", "pid"),  # WorkdirLockedError
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz --nosuch=1", "'nosuch'"),
+    ("predict_recording", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz", "--tokenizer_dir="),
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz", "NN_tracks.csv"),
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz --every=0", "--every=0"),
     ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
     ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
@@ -132,6 +141,10 @@ CASES = [
     ("train_baseline", f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
      "--config.tokenizer_dir={T}/empty --config.train.select_metric=accuracy",
      "train.select_metric"),
+    ("train_mdn", f"{MDN} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+     "--config.tokenizer_dir={T}/empty --config.model.std_floor_m=0",
+     "--config.model.std_floor_m=0"),
+    ("train_mdn", f"{MDN} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("train_diffusion", f"{DIFF} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("train_diffusion", "--config=configs/diffusion.py:nosuch --workdir={NEW}",
      "--config=configs/diffusion.py:nosuch"),
