@@ -114,6 +114,14 @@ CASES = [
     ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.source=highd "
      "--config.highd_dir={T}/nosuch", "--config.highd_dir="),
     ("make_dataset", f"{DATA} --data_dir={{T}}/locked", "pid"),  # WorkdirLockedError
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz --nosuch=1", "'nosuch'"),
+    ("predict_recording", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz", "--tokenizer_dir="),
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz", "NN_tracks.csv"),
+    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+     "--recording={T}/file --out={NEW}/p.csv.gz --every=0", "--every=0"),
     ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
     ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
