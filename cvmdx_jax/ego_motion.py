@@ -131,7 +131,7 @@ def ego_features(xi, mask):
                 jnp.asarray(_ABSENT_DX, jnp.float32)),
       jnp.where(present, other[..., 2] - ego[:, -1:, 2], 0.0),
       jnp.where(present, other[..., 1] - ego[:, -1:, 1], 0.0),
-  ], axis=-1).reshape(len(xi), -1)
+  ], axis=-1).reshape(xi.shape[0], -1)
   raw = jnp.stack([
       speed[:, -1],
       _slope(speed[:, recent], weights),

@@ -1,0 +1,218 @@
+"""Serialised `jax.export` artefacts of a `Predictor`: the model outside this package.
+
+`export(predictor, out_dir)` writes three files (one group, `storage.checksums.write_all`:
+all new or all old, listed with their sha256 in `checksums.json`):
+
+    predict.jax      the whole prediction: tokeniser, sampler, vehicle motion model and
+                     hypotheses, `predict_fn` (inputs and outputs: `predict_inputs`,
+                     `PREDICT_OUTPUTS`)
+    denoiser.jax     one evaluation of the denoiser v(x_t, t, q[, cond]), `denoiser_fn`
+    manifest.json    names, shapes ("b" the symbolic batch) and dtypes of both, the sampling
+                     settings, the runs the parameters come from, the delta limit
+
+Each artefact is `jax.export.export(jax.jit(f))` over a symbolic batch dimension b, so one
+file serves any batch size; the parameters (the denoiser's prepared as `Predictor` applies
+them) are baked in as constants, so a user needs the bytes and JAX alone:
+
+    exported = jax.export.deserialize(open("predict.jax", "rb").read())
+    out = exported.call(xi, mask, v0, psi0, np.uint32(seed), noise_ids)
+
+Scenario i of a call draws its noise from fold_in(... fold_in(key(seed), noise_ids[i, 0])
+..., noise_ids[i, K - 1]), as `Predictor` does (`noise_ids`; K = 1 and the scenario's
+position by default, K = 2 (frame, track id) in `inference.stream`; K is fixed at export,
+`num_noise_ids`), so the artefact reproduces a `Predictor` call
+(to float rounding: XLA compiles the artefact for the concrete batch with the parameters
+as constants, and may fold or fuse other than the package's jit; tests/inference/
+test_export.py states the tolerance). The artefacts are lowered for the backend they are
+exported on (`jax.default_backend()`, which also picks the U-Net's fast paths).
+"""
+
+import dataclasses
+import functools
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from cvmdx_jax import constants, ego_motion
+from cvmdx_jax.diffusion import cosine_schedule
+from cvmdx_jax.inference import predictor as predictor_lib
+from cvmdx_jax.storage import atomic, checksums, identity
+
+PREDICT_FILE = "predict.jax"
+DENOISER_FILE = "denoiser.jax"
+MANIFEST_FILE = "manifest.json"
+FORMAT_VERSION = 1
+BATCH = "b"  # the symbolic batch dimension's name in shapes and the manifest
+
+
+
+def predict_inputs(num_noise_ids: int = 1) -> tuple:
+  """(name, shape with BATCH, dtype) of predict.jax's positional inputs."""
+  return (("xi", (BATCH, constants.NUM_VEHICLES, constants.T_OBS, 4), "float32"),
+          ("mask", (BATCH, constants.NUM_VEHICLES, constants.T_OBS), "bool"),
+          ("v0", (BATCH,), "float32"),
+          ("psi0", (BATCH,), "float32"),
+          ("seed", (), "uint32"),
+          ("noise_ids", (BATCH, num_noise_ids), "uint32"))
+
+PREDICT_OUTPUTS = ("trajectories", "controls", "mean", "hypothesis_means", "hypothesis_probs",
+                   "num_modes", "labels", "q", "delta")
+
+
+def _keys(seed, noise_ids):
+  """(b,) PRNG keys of `noise_ids` (b, K), those of `Predictor.__call__`."""
+  return jax.vmap(functools.partial(predictor_lib._fold_ids, jax.random.key(seed)))(noise_ids)
+
+
+def predict_fn(predictor: predictor_lib.Predictor):
+  """f(xi, mask, v0, psi0, seed, noise_ids) -> {name: array} of `PREDICT_OUTPUTS`: trajectories
+  and controls (b, N, 125, 2), mean (b, 125, 2), hypothesis_means (b, C_max, 125, 2),
+  hypothesis_probs (b, C_max), num_modes (b,), labels (b, N), q (b,), delta (b,); the
+  predictor's parameters are closed over (constants once exported)."""
+  schedule = cosine_schedule(predictor.denoiser.config.diffusion.num_steps)
+
+  def f(xi, mask, v0, psi0, seed, noise_ids):
+    pred, q, delta = predictor_lib._predict(predictor.tokenizer, predictor.denoiser, xi, mask,
+                                            v0, psi0, _keys(seed, noise_ids), schedule,
+                                            config=predictor.sampling)
+    hyp = pred.hypotheses
+    return {"trajectories": pred.trajectories, "controls": pred.controls, "mean": pred.mean,
+            "hypothesis_means": hyp.means, "hypothesis_probs": hyp.probs,
+            "num_modes": hyp.num_modes, "labels": hyp.labels, "q": q, "delta": delta}
+  return f
+
+
+def cond_dim(predictor: predictor_lib.Predictor) -> int:
+  """Width of the denoiser's FiLM input (0: none): ego features, the drawn intent's
+  one-hot, then w for a guidance student (`diffusion.distillation.student_cond`)."""
+  return predictor.denoiser.config.model.cond_dim
+
+
+def denoiser_fn(predictor: predictor_lib.Predictor):
+  """f(x_t (b, 125, 2) f32, t (b,) int32, q (b,) int32[, cond (b, cond_dim) f32]) -> v
+  (b, 125, 2): one evaluation of the prepared denoiser."""
+  denoiser = predictor.denoiser
+  if cond_dim(predictor):
+    return lambda x_t, t, q, cond: denoiser.apply(x_t, t, q, cond)
+  return lambda x_t, t, q: denoiser.apply(x_t, t, q)
+
+
+def denoiser_inputs(predictor: predictor_lib.Predictor) -> tuple:
+  """(name, shape, dtype) of denoiser.jax's inputs."""
+  inputs = (("x_t", (BATCH, constants.T_PRED, 2), "float32"), ("t", (BATCH,), "int32"),
+            ("q", (BATCH,), "int32"))
+  c = cond_dim(predictor)
+  return inputs + ((("cond", (BATCH, c), "float32"),) if c else ())
+
+
+def _abstract(inputs, batch) -> list:
+  return [jax.ShapeDtypeStruct(tuple(batch if d == BATCH else d for d in shape), dtype)
+          for _, shape, dtype in inputs]
+
+
+def _spec(name, shape, dtype) -> dict:
+  return {"name": name, "shape": [str(d) if not isinstance(d, int) else d for d in shape],
+          "dtype": str(dtype)}
+
+
+def export_bytes(f, inputs) -> tuple[bytes, list]:
+  """(serialised `jax.export` of jit(f) over `inputs` with a symbolic batch, the output
+  specs [{name, shape, dtype}] in the artefact's flat output order)."""
+  batch, = jax.export.symbolic_shape(BATCH)
+  exported = jax.export.export(jax.jit(f), platforms=(jax.default_backend(),))(
+      *_abstract(inputs, batch))
+  outputs = [_spec(n, a.shape, a.dtype)
+             for n, a in zip(_output_names(exported), exported.out_avals)]
+  return exported.serialize(), outputs
+
+
+def _output_names(exported) -> list[str]:
+  """Names of the flat outputs: the dict keys of a dict output, else "v"."""
+  positions = jax.tree.unflatten(exported.out_tree, range(len(exported.out_avals)))
+  return sorted(positions, key=positions.get) if isinstance(positions, dict) else ["v"]
+
+
+def _runs(predictor: predictor_lib.Predictor) -> dict:
+  tok = predictor.tokenizer
+  checkpoint = None if tok.checkpoint is None else tok.checkpoint.to_dict()
+  return {"tokenizer_checkpoint": checkpoint,
+          "denoiser_fingerprint_id": identity.content_id(predictor.denoiser.fingerprint.to_dict()),
+          "denoiser_params_id": identity.content_id(jax.device_get(predictor.denoiser.params))}
+
+
+def manifest(predictor: predictor_lib.Predictor, predict_inputs_, predict_outputs,
+             denoiser_outputs) -> dict:
+  """The manifest.json of an export (see the module docstring)."""
+  targets = predictor.denoiser.config.diffusion
+  return {
+      "format_version": FORMAT_VERSION, "jax_version": jax.__version__,
+      "platforms": [jax.default_backend()], "batch_dimension": BATCH,
+      "predict": {"file": PREDICT_FILE, "inputs": [_spec(*i) for i in predict_inputs_],
+                  "outputs": predict_outputs,
+                  "keys": "scenario i draws from fold_in(... fold_in(key(seed), "
+                          "noise_ids[i, 0]) ..., noise_ids[i, K - 1])"},
+      "denoiser": {"file": DENOISER_FILE,
+                   "inputs": [_spec(*i) for i in denoiser_inputs(predictor)],
+                   "outputs": denoiser_outputs,
+                   "cond": _cond_layout(predictor),
+                   "num_steps": targets.num_steps, "null_token": predictor.denoiser.null_token,
+                   "control_scale": list(np.asarray(targets.control_scale, float).ravel()),
+                   "conditioning": targets.conditioning},
+      "sampling": _plain(dataclasses.asdict(predictor.sampling)),
+      "delta_limit": predictor.delta_limit if np.isfinite(predictor.delta_limit) else None,
+      "runs": _runs(predictor),
+  }
+
+
+def _cond_layout(predictor) -> list[str]:
+  """What the columns of the denoiser's cond hold, in order."""
+  targets = predictor.denoiser.config.diffusion
+  parts = []
+  if ego_motion.uses_film(targets.conditioning) or targets.intent_conditioning:
+    parts.append(f"ego_motion features ({ego_motion.NUM_FEATURES})")
+  if targets.intent_conditioning:
+    parts.append(f"intent one-hot ({constants.NUM_CLASSES})")
+  if targets.guidance_input:
+    parts.append("guidance weight w (1)")
+  return parts
+
+
+def _plain(value):
+  """JSON-able copy of a nested dict of settings (tuples as lists)."""
+  if isinstance(value, dict):
+    return {k: _plain(v) for k, v in value.items()}
+  if isinstance(value, (tuple, list)):
+    return [_plain(v) for v in value]
+  return value
+
+
+def export(predictor: predictor_lib.Predictor, out_dir: str | os.PathLike,
+           num_noise_ids: int = 1) -> dict:
+  """Writes predict.jax, denoiser.jax and manifest.json to `out_dir` (created); returns the
+  manifest. num_noise_ids: K of the noise_ids input (1: `Predictor`'s default ids)."""
+  out = Path(out_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  inputs = predict_inputs(num_noise_ids)
+  predict_bytes, predict_outputs = export_bytes(predict_fn(predictor), inputs)
+  denoiser_bytes, denoiser_outputs = export_bytes(denoiser_fn(predictor),
+                                                  denoiser_inputs(predictor))
+  meta = manifest(predictor, inputs, predict_outputs, denoiser_outputs)
+  checksums.write_all({out / PREDICT_FILE: predict_bytes, out / DENOISER_FILE: denoiser_bytes,
+                       out / MANIFEST_FILE: atomic.json_text(meta).encode()})
+  return meta
+
+
+def load(out_dir: str | os.PathLike, name: str = PREDICT_FILE) -> jax.export.Exported:
+  """The deserialised artefact `name` of an export directory (checksum verified)."""
+  return jax.export.deserialize(checksums.read_bytes(Path(out_dir) / name))
+
+
+def call_inputs(scenarios, seed: int, noise_ids=None) -> tuple:
+  """predict.jax's positional inputs for `Scenarios` or `Observations` (noise_ids (M, K);
+  default the positions 0..M-1, K = 1)."""
+  ids = np.arange(len(scenarios))[:, None] if noise_ids is None else noise_ids
+  return (np.asarray(scenarios.xi, np.float32), np.asarray(scenarios.mask, bool),
+          np.asarray(scenarios.v0, np.float32), np.asarray(scenarios.psi0, np.float32),
+          np.uint32(seed), np.asarray(ids, np.uint32))
