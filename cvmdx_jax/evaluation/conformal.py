@@ -38,8 +38,12 @@ def delta_levels(val_scores, val_delta, delta, levels, bins: int = DELTA_BINS) -
   calibrated on the val scenarios of that bin."""
   edges = delta_edges(val_delta, bins)
   val_bin = np.digitize(np.asarray(val_delta), edges)
-  table = np.array([[calibrated_level(np.asarray(val_scores)[val_bin == b], a) for a in levels]
-                    for b in range(bins)])
+  table = np.array(
+      [
+          [calibrated_level(np.asarray(val_scores)[val_bin == b], a) for a in levels]
+          for b in range(bins)
+      ]
+  )
   return table[np.digitize(np.asarray(delta), edges)]
 
 

@@ -34,8 +34,10 @@ class WeightedSamples:
   @classmethod
   def point_mass(cls, trajectory) -> "WeightedSamples":
     """One trajectory (M, T, 2) with weight 1."""
-    return cls(points=trajectory[:, None], weights=jnp.ones(trajectory.shape[:1],
-                                                            trajectory.dtype)[:, None])
+    return cls(
+        points=trajectory[:, None],
+        weights=jnp.ones(trajectory.shape[:1], trajectory.dtype)[:, None],
+    )
 
   def mean(self):
     """Weighted mean trajectory (M, T, 2)."""
@@ -55,8 +57,9 @@ class GaussianMixture:
     """Exact log density (nats, per m^2) of positions (M, T, 2) under each step's
     marginal mixture -> (M, T)."""
     z = (positions[:, None] - self.means) / self.stds  # (M, K, T, 2)
-    log_pdf = jnp.sum(-0.5 * z ** 2 - jnp.log(self.stds) - 0.5 * math.log(2.0 * math.pi),
-                      axis=-1)  # (M, K, T)
+    log_pdf = jnp.sum(
+        -0.5 * z**2 - jnp.log(self.stds) - 0.5 * math.log(2.0 * math.pi), axis=-1
+    )  # (M, K, T)
     log_w = jnp.log(jnp.maximum(self.weights, 1e-30))[..., None]
     return jax.scipy.special.logsumexp(log_pdf + log_w, axis=1)
 
@@ -65,8 +68,9 @@ class GaussianMixture:
     uniform weights."""
     mode_key, noise_key = jax.random.split(key)
     m = self.weights.shape[0]
-    modes = jax.random.categorical(mode_key, jnp.log(jnp.maximum(self.weights, 1e-30)),
-                                   shape=(n, m)).T  # (M, n)
+    modes = jax.random.categorical(
+        mode_key, jnp.log(jnp.maximum(self.weights, 1e-30)), shape=(n, m)
+    ).T  # (M, n)
     pick = lambda a: jnp.take_along_axis(a, modes[:, :, None, None], axis=1)
     noise = jax.random.normal(noise_key, (m, n) + self.means.shape[2:], self.means.dtype)
     return WeightedSamples.uniform(pick(self.means) + pick(self.stds) * noise)

@@ -51,26 +51,40 @@ def plot_predictions(scenarios, output, indices) -> bytes:
       m = scenarios.mask[i, slot]
       if m.any():
         ax.plot(scenarios.xi[i, slot, m, 0], scenarios.xi[i, slot, m, 1], color="0.5", lw=1)
-    ax.plot(scenarios.xi[i, 0, :, 0], scenarios.xi[i, 0, :, 1], color="k", lw=1.5,
-            label="observed")
+    ax.plot(scenarios.xi[i, 0, :, 0], scenarios.xi[i, 0, :, 1], color="k", lw=1.5, label="observed")
     for n in range(pred.trajectories.shape[1]):
       c = _COLOURS[int(hyp.labels[i, n]) % len(_COLOURS)]
-      ax.plot(pred.trajectories[i, n, :, 0], pred.trajectories[i, n, :, 1], color=c, lw=0.6,
-              alpha=0.6)
+      ax.plot(
+          pred.trajectories[i, n, :, 0], pred.trajectories[i, n, :, 1], color=c, lw=0.6, alpha=0.6
+      )
     for c in range(hyp.means.shape[1]):
       if hyp.probs[i, c] > 0:
-        ax.plot(hyp.means[i, c, :, 0], hyp.means[i, c, :, 1], color=_COLOURS[c], lw=2.2,
-                label=f"hypothesis p={hyp.probs[i, c]:.2f}")
+        ax.plot(
+            hyp.means[i, c, :, 0],
+            hyp.means[i, c, :, 1],
+            color=_COLOURS[c],
+            lw=2.2,
+            label=f"hypothesis p={hyp.probs[i, c]:.2f}",
+        )
     ax.plot(pred.mean[i, :, 0], pred.mean[i, :, 1], color="m", lw=1.2, ls=":", label="mean")
-    ax.plot(scenarios.future[i, :, 0], scenarios.future[i, :, 1], color="r", lw=1.5,
-            ls="--", label="ground truth")
-    ax.set_title(f"#{i} {constants.CLASS_NAMES[int(scenarios.label[i])]}  q={int(output.q[i])}"
-                 f"  delta={float(output.delta[i]):.1f}", fontsize=9)
+    ax.plot(
+        scenarios.future[i, :, 0],
+        scenarios.future[i, :, 1],
+        color="r",
+        lw=1.5,
+        ls="--",
+        label="ground truth",
+    )
+    ax.set_title(
+        f"#{i} {constants.CLASS_NAMES[int(scenarios.label[i])]}  q={int(output.q[i])}"
+        f"  delta={float(output.delta[i]):.1f}",
+        fontsize=9,
+    )
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_ylim(-3 * LANE_WIDTH_M, 3 * LANE_WIDTH_M)
     ax.legend(fontsize=6, loc="upper left")
-  for ax in axes.flat[len(indices):]:
+  for ax in axes.flat[len(indices) :]:
     ax.axis("off")
   return _png(fig)
 
@@ -95,8 +109,12 @@ def plot_kl_vs_usage(token_kl, title: str = "") -> tuple[bytes, tuple | None]:
   ax.scatter(token_kl.usage, token_kl.kl, s=14, label="codebook entries")
   if fit is not None:
     n = np.geomspace(max(token_kl.usage.min(), 1), token_kl.usage.max(), 100)
-    ax.plot(n, fit[0] * n ** -fit[1] + fit[2], color="r",
-            label=f"{fit[0]:.2f} N^-{fit[1]:.2f} + {fit[2]:.2f}")
+    ax.plot(
+        n,
+        fit[0] * n ** -fit[1] + fit[2],
+        color="r",
+        label=f"{fit[0]:.2f} N^-{fit[1]:.2f} + {fit[2]:.2f}",
+    )
   ax.set_xscale("log")
   ax.set_xlabel("N_q (training scenarios with token q)")
   ax.set_ylabel("KL(p_q || p_theta,q) [nats]")
@@ -114,8 +132,9 @@ def plot_reliability(diagram: dict, title: str = "") -> bytes:
   conf, acc = (np.asarray(diagram[k], np.float64) for k in ("confidence", "accuracy"))
   edges = np.linspace(0.0, 1.0, len(count) + 1)
   used = count > 0
-  fig, (ax, bars) = plt.subplots(2, 1, figsize=(4.5, 5), sharex=True,
-                                 gridspec_kw={"height_ratios": (3, 1)})
+  fig, (ax, bars) = plt.subplots(
+      2, 1, figsize=(4.5, 5), sharex=True, gridspec_kw={"height_ratios": (3, 1)}
+  )
   ax.plot([0, 1], [0, 1], color="0.6", ls="--", lw=1, label="calibrated")
   ax.plot(conf[used], acc[used], marker="o", color="tab:blue", label="hypotheses")
   ax.set_ylabel("share closest to the truth")
@@ -126,4 +145,28 @@ def plot_reliability(diagram: dict, title: str = "") -> bytes:
   bars.bar(edges[:-1], count, width=np.diff(edges), align="edge", color="tab:blue", alpha=0.6)
   bars.set_xlabel("hypothesis probability p(c)")
   bars.set_ylabel("count")
+  return _png(fig)
+
+
+def plot_region_reliability(u_by_model: dict, horizons, title: str = "") -> bytes:
+  """Reliability of the highest-density prediction regions: one panel per horizon, per
+  model the share of true positions inside the level-a region against a.
+
+  u_by_model: {model: {horizon s: (M,) u}} (`regions.hdr`: the truth lies in the level-a
+  region iff u <= a). Returns the PNG bytes.
+  """
+  levels = np.linspace(0.0, 1.0, 41)
+  fig, axes = plt.subplots(1, len(horizons), figsize=(3.0 * len(horizons), 3.2), sharey=True)
+  for ax, s in zip(np.atleast_1d(axes), horizons):
+    ax.plot([0, 1], [0, 1], color="0.6", ls="--", lw=1)
+    for model, by_horizon in u_by_model.items():
+      u = np.asarray(by_horizon[s])
+      ax.plot(levels, [np.mean(u <= a) for a in levels], lw=1.2, label=model)
+    ax.set_title(f"{s} s", fontsize=9)
+    ax.set_xlabel("nominal mass a")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+  np.atleast_1d(axes)[0].set_ylabel("share of true positions inside")
+  np.atleast_1d(axes)[0].legend(fontsize=6, loc="upper left")
+  fig.suptitle(title, fontsize=9)
   return _png(fig)

@@ -27,8 +27,7 @@ def _statistic(sums, sq_sums, counts, kind: str):
   raise ValueError(f"unknown statistic {kind!r} (mean or rmse)")
 
 
-def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean",
-                      draws: int = DRAWS) -> dict:
+def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean", draws: int = DRAWS) -> dict:
   """stat(a) - stat(b) over the same scenarios, with its vehicle-bootstrap interval.
 
   Args:
@@ -57,11 +56,19 @@ def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean",
   tail = 100.0 * (1.0 - CONFIDENCE) / 2.0
   low, high = np.percentile(diffs, [tail, 100.0 - tail])
   verdict = "better" if high < 0 else "worse" if low > 0 else "tie"
-  return {"a": float(point[0]), "b": float(point[1]), "difference": float(point[0] - point[1]),
-          "low": float(low), "high": float(high), "verdict": verdict}
+  return {
+      "a": float(point[0]),
+      "b": float(point[1]),
+      "difference": float(point[0] - point[1]),
+      "low": float(low),
+      "high": float(high),
+      "verdict": verdict,
+  }
 
 
 def format_difference(row: dict, spec: str = "{:+.3f}") -> str:
   """'-0.102 [-0.151, -0.053] better' of a `paired_difference` row."""
-  return (f"{spec.format(row['difference'])} [{spec.format(row['low'])}, "
-          f"{spec.format(row['high'])}] {row['verdict']}")
+  return (
+      f"{spec.format(row['difference'])} [{spec.format(row['low'])}, "
+      f"{spec.format(row['high'])}] {row['verdict']}"
+  )

@@ -88,28 +88,3 @@ def target_lane_hit(hyps, probs, gt, min_prob: float = 0.2):
   hyps (..., K, T, 2), probs (..., K), gt (..., T, 2) -> (...,)."""
   ends = hit(hyps, gt[..., None, :, :]) * (probs >= min_prob)
   return jnp.max(ends, axis=-1)
-
-
-def multimodal_metrics(mean, hyp_means, hyp_probs, gt):
-  """All per-scenario metrics of one prediction set.
-
-  Args:
-    mean: (B, T, 2) mean trajectory.
-    hyp_means: (B, K, T, 2) hypothesis means.
-    hyp_probs: (B, K) hypothesis probabilities (0 = unused slot).
-    gt: (B, T, 2) ground truth.
-
-  Returns:
-    dict of (B,) arrays: mean_ade, mean_fde, ml_ade, ml_fde, min_ade_k,
-    min_fde_k, miss_rate (best-of-K final error > 2 m), hit_rate (mean
-    trajectory's final lateral error < 1.75 m), ml_hit_rate.
-  """
-  valid = hyp_probs > 0
-  ml = most_likely(hyp_means, hyp_probs)
-  min_fde = min_fde_k(hyp_means, gt, valid)
-  return {
-      "mean_ade": ade(mean, gt), "mean_fde": fde(mean, gt),
-      "ml_ade": ade(ml, gt), "ml_fde": fde(ml, gt),
-      "min_ade_k": min_ade_k(hyp_means, gt, valid), "min_fde_k": min_fde,
-      "miss_rate": miss(min_fde), "hit_rate": hit(mean, gt), "ml_hit_rate": hit(ml, gt),
-  }

@@ -55,27 +55,25 @@ def weighted_energy_score(points, weights, gt, fair: bool):
 
   points (..., N, T, 2), weights (..., N) summing to 1, gt (..., T, 2) -> (...,).
   """
-  to_truth = jnp.sum(weights * jnp.sqrt(_rms_displacement_sq(points, gt[..., None, :, :])),
-                     axis=-1)
+  to_truth = jnp.sum(weights * jnp.sqrt(_rms_displacement_sq(points, gt[..., None, :, :])), axis=-1)
   if points.shape[-3] == 1:
     return to_truth
   # pairwise distances from the Gram matrix of the centred points (B x N x N memory)
   centred = points - jnp.mean(points, axis=-3, keepdims=True)
   flat = centred.reshape(centred.shape[:-2] + (-1,)) / math.sqrt(points.shape[-2])
-  sq_norm = jnp.sum(flat ** 2, axis=-1)
+  sq_norm = jnp.sum(flat**2, axis=-1)
   gram = jnp.einsum("...id,...jd->...ij", flat, flat, precision=constants.EXACT_MATMUL)
   sq = jnp.maximum(sq_norm[..., :, None] + sq_norm[..., None, :] - 2.0 * gram, 0.0)
   n = points.shape[-3]
   pair_w = weights[..., :, None] * weights[..., None, :] * (1.0 - jnp.eye(n, dtype=points.dtype))
   spread = jnp.sum(jnp.sqrt(sq) * pair_w, axis=(-2, -1))
   if fair:
-    norm = 1.0 - jnp.sum(weights ** 2, axis=-1)
+    norm = 1.0 - jnp.sum(weights**2, axis=-1)
     spread = jnp.where(norm > 1e-9, spread / jnp.where(norm > 1e-9, norm, 1.0), 0.0)
   return to_truth - 0.5 * spread
 
 
-def hypothesis_covariances(points, labels, num_slots: int,
-                           floor: float = COVARIANCE_FLOOR_M2):
+def hypothesis_covariances(points, labels, num_slots: int, floor: float = COVARIANCE_FLOOR_M2):
   """Covariance of each hypothesis's members plus floor * I.
 
   Args:
@@ -89,12 +87,16 @@ def hypothesis_covariances(points, labels, num_slots: int,
   """
   one_hot = jax.nn.one_hot(labels, num_slots, dtype=points.dtype)  # (..., N, K)
   counts = jnp.maximum(jnp.sum(one_hot, axis=-2), 1.0)  # (..., K)
-  means = jnp.einsum("...nk,...nd->...kd", one_hot, points,
-                     precision=constants.EXACT_MATMUL) / counts[..., None]
+  means = (
+      jnp.einsum("...nk,...nd->...kd", one_hot, points, precision=constants.EXACT_MATMUL)
+      / counts[..., None]
+  )
   dev = points[..., None, :, :] - means[..., :, None, :]  # (..., K, N, 2)
   weighted = dev * jnp.swapaxes(one_hot, -1, -2)[..., None]
-  cov = jnp.einsum("...kni,...knj->...kij", weighted, dev,
-                   precision=constants.EXACT_MATMUL) / counts[..., None, None]
+  cov = (
+      jnp.einsum("...kni,...knj->...kij", weighted, dev, precision=constants.EXACT_MATMUL)
+      / counts[..., None, None]
+  )
   return means, cov + floor * jnp.eye(2, dtype=points.dtype)
 
 
@@ -145,9 +147,11 @@ def reliability(probs, correct, valid, num_bins: int = NUM_BINS) -> Reliability:
   index = jnp.clip(jnp.floor(probs * num_bins).astype(jnp.int32), 0, num_bins - 1)
   one_hot = jax.nn.one_hot(index, num_bins, dtype=jnp.float32) * valid[..., None]
   flat = lambda w: jnp.sum((one_hot * w[..., None]).reshape(-1, num_bins), axis=0)
-  return Reliability(count=flat(jnp.ones_like(probs, jnp.float32)),
-                     confidence=flat(probs.astype(jnp.float32)),
-                     correct=flat(correct.astype(jnp.float32)))
+  return Reliability(
+      count=flat(jnp.ones_like(probs, jnp.float32)),
+      confidence=flat(probs.astype(jnp.float32)),
+      correct=flat(correct.astype(jnp.float32)),
+  )
 
 
 def expected_calibration_error(rel: Reliability):

@@ -74,26 +74,38 @@ def nll(mix: HorizonMixture, y):
 
 
 @jax.jit
-def _grid_nll(points, weights, y, grid):
-  """Mean over scenarios of -log p(y) for every (h_lon, h_lat) of grid (G,) -> (G, G)."""
-  dev = (y[:, None] - points)  # (M, N, 2)
-  per_axis = (-0.5 * (dev[..., None] / grid) ** 2 - jnp.log(grid)
-              - 0.5 * math.log(2.0 * math.pi))  # (M, N, 2, G)
+def _grid_nll(points, weights, y, valid, grid):
+  """Sum over the valid scenarios of -log p(y) for every (h_lon, h_lat) of grid (G,)
+  -> (G, G)."""
+  dev = y[:, None] - points  # (M, N, 2)
+  per_axis = (
+      -0.5 * (dev[..., None] / grid) ** 2 - jnp.log(grid) - 0.5 * math.log(2.0 * math.pi)
+  )  # (M, N, 2, G)
   joint = per_axis[:, :, 0, :, None] + per_axis[:, :, 1, None, :]  # (M, N, G, G)
   log_w = jnp.log(jnp.maximum(weights, 1e-30))[..., None, None]
-  return -jnp.sum(jax.scipy.special.logsumexp(joint + log_w, axis=1), axis=0)
+  per = jax.scipy.special.logsumexp(joint + log_w, axis=1)  # (M, G, G)
+  return -jnp.sum(jnp.where(valid[:, None, None], per, 0.0), axis=0)
 
 
-def choose_bandwidth(dist: WeightedSamples, gt, step: int,
-                     grid=BANDWIDTH_GRID_M) -> tuple[float, float]:
+def choose_bandwidth(
+    dist: WeightedSamples, gt, step: int, grid=BANDWIDTH_GRID_M
+) -> tuple[float, float]:
   """The (lon, lat) kernel bandwidth (m) of `grid` with the smallest mean NLL of gt[:, step]
   (call it on val)."""
   points = np.asarray(dist.points)[:, :, step]
   weights, y = np.asarray(dist.weights), np.asarray(gt)[:, step]
   grid = jnp.asarray(grid, jnp.float32)
-  total = sum(_grid_nll(jnp.asarray(points[i:i + _CHUNK]), jnp.asarray(weights[i:i + _CHUNK]),
-                        jnp.asarray(y[i:i + _CHUNK]), grid)
-              for i in range(0, len(y), _CHUNK))
+  size = min(_CHUNK, len(y))
+  total = sum(
+      _grid_nll(
+          _pad(points[i:j], size),
+          _pad(weights[i:j], size),
+          _pad(y[i:j], size),
+          jnp.arange(size) < j - i,
+          grid,
+      )
+      for i, j in _blocks(len(y))
+  )
   lon, lat = np.unravel_index(int(np.argmin(np.asarray(total))), total.shape)
   return float(grid[lon]), float(grid[lat])
 
@@ -101,8 +113,9 @@ def choose_bandwidth(dist: WeightedSamples, gt, step: int,
 def _draw(key, mix: HorizonMixture, n: int):
   """n positions per scenario from the mixture -> (M, n, 2)."""
   k_key, z_key = jax.random.split(key)
-  comp = jax.random.categorical(k_key, jnp.log(jnp.maximum(mix.weights, 1e-30))[:, None],
-                                shape=(mix.weights.shape[0], n))
+  comp = jax.random.categorical(
+      k_key, jnp.log(jnp.maximum(mix.weights, 1e-30))[:, None], shape=(mix.weights.shape[0], n)
+  )
   pick = lambda a: jnp.take_along_axis(a, comp[..., None], axis=1)
   return pick(mix.means) + pick(mix.stds) * jax.random.normal(z_key, comp.shape + (2,))
 
@@ -119,6 +132,22 @@ def _hdr_block(key, mix: HorizonMixture, y, levels):
   return u, jnp.take_along_axis(cum_area, index, axis=-1)
 
 
+def _blocks(m: int):
+  """(start, stop) of the `_CHUNK` blocks of m scenarios; the last one is padded by `_pad`
+  (one compiled shape per call site)."""
+  return [(i, min(i + _CHUNK, m)) for i in range(0, m, _CHUNK)]
+
+
+def _pad(a, size: int):
+  """a (n, ...) padded to (size, ...) by repeating its first row."""
+  a = jnp.asarray(a)
+  return (
+      a
+      if a.shape[0] == size
+      else jnp.concatenate([a, jnp.broadcast_to(a[:1], (size - a.shape[0],) + a.shape[1:])])
+  )
+
+
 def hdr(key: jax.Array, mix: HorizonMixture, y, levels) -> tuple[np.ndarray, np.ndarray]:
   """Per scenario u = P(p(Z) > p(y)) (M,) and the areas (m^2) of the level-`levels` HDRs.
 
@@ -127,11 +156,13 @@ def hdr(key: jax.Array, mix: HorizonMixture, y, levels) -> tuple[np.ndarray, np.
   y = jnp.asarray(y)
   m = y.shape[0]
   levels = np.broadcast_to(np.asarray(levels, np.float32), (m, np.shape(levels)[-1]))
+  size = min(_CHUNK, m)
   us, areas = [], []
-  for i in range(0, m, _CHUNK):
-    part = jax.tree.map(lambda a, i=i: a[i:i + _CHUNK], mix)
-    u, area = _hdr_block(jax.random.fold_in(key, i), part, y[i:i + _CHUNK],
-                         jnp.asarray(levels[i:i + _CHUNK]))
-    us.append(np.asarray(u))
-    areas.append(np.asarray(area))
+  for i, j in _blocks(m):
+    part = jax.tree.map(lambda a: _pad(a[i:j], size), mix)
+    u, area = _hdr_block(
+        jax.random.fold_in(key, i), part, _pad(y[i:j], size), _pad(levels[i:j], size)
+    )
+    us.append(np.asarray(u)[: j - i])
+    areas.append(np.asarray(area)[: j - i])
   return np.concatenate(us), np.concatenate(areas)

@@ -11,8 +11,9 @@ plus `brier_min_fde` (Argoverse 2: minFDE_K + (1 - p)^2 of that hypothesis) and
 the true final lateral position; absent from the kl subset), `nll_final` (nats, the true
 5 s position under the hypotheses as a Gaussian mixture) and `ece` (calibration of p(c)
 as "this hypothesis is the closest to the truth", 10 bins); `evaluation.probabilistic`
-defines both. The mean of N also carries `energy_score` (m, of the N samples against the
-true trajectory, `probabilistic.energy_score`),
+defines both. `energy_score` (m, `probabilistic`): of the N samples on the mean of N's
+row, of the K hypotheses with their p on every best-of-K row, of the point mass on the
+constant-velocity / -acceleration rows. The mean of N also carries
 `out_of_distribution` (share of scenarios with delta beyond the tokeniser's training
 range) and `delta_ade_spearman` / `delta_ade_spearman_p` (Spearman's rank correlation of
 delta with the mean trajectory's ADE and its two-sided p-value).
@@ -21,16 +22,13 @@ Metrics are never computed over NaN: `check_finite` refuses non-finite predictio
 `summarise` non-finite per-scenario values, with `NonFinitePredictionError`.
 """
 
-import dataclasses
-
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
 from cvmdx_jax import constants
-from cvmdx_jax.evaluation import metrics
-from cvmdx_jax.evaluation import baselines
-from cvmdx_jax.evaluation import probabilistic
+from cvmdx_jax.errors import UserError
+from cvmdx_jax.evaluation import baselines, metrics, probabilistic
 
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")
 SUBSETS = ("all",) + constants.CLASS_NAMES
@@ -49,7 +47,7 @@ PAPER_HIGHD = {"cvmdx_mean": (1.37, 3.84), "cvmdx_most_likely": (1.43, 4.00),
                "cvmdx_best_of_k": (1.33, 3.68), "ddpm_single": (1.79, 3.76)}
 
 
-class NonFinitePredictionError(ValueError):
+class NonFinitePredictionError(UserError):
   """A prediction (or a metric of it) holds NaN or inf; no metric is computed over it."""
 
 
@@ -93,7 +91,8 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
   """Per-scenario best-of-K errors over the used hypothesis slots.
 
   hyps (M, K, T, 2), probs (M, K) (0 = unused slot), gt (M, T, 2), labels (M,).
-  `target_lane_hit` is a masked array, masked on keep-lane scenarios.
+  `target_lane_hit` is a masked array, masked on keep-lane scenarios; `energy_score` is the
+  exact score of the hypotheses as a discrete distribution with weights p.
   """
   valid = probs > 0
   final = metrics.min_fde_k(hyps, gt, valid)
@@ -101,10 +100,12 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
       metrics.take_hypothesis(hyps, metrics.closest_final(hyps, gt, valid)), gt)
   hits = jnp.where(valid, metrics.hit(hyps, gt[:, None]), 0.0)
   lane = metrics.target_lane_hit(hyps, probs, gt, min_prob=TARGET_LANE_MIN_PROB)
+  weights = probs / jnp.sum(probs, axis=-1, keepdims=True)
   return {"ade": metrics.min_ade_k(hyps, gt, valid), "fde": final, "final_lon": lon,
           "final_lat": lat, "miss_rate": metrics.miss(final), "hit_rate": jnp.max(hits, axis=-1),
           "brier_min_fde": metrics.brier_min_fde(hyps, probs, gt, valid),
-          "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0)}
+          "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0),
+          "energy_score": probabilistic.weighted_energy_score(hyps, weights, gt, fair=False)}
 
 
 def cvmdx_errors(output, gt, labels) -> dict:
@@ -169,11 +170,13 @@ def delta_rank_correlation(delta, ade, labels) -> dict:
 
 
 def baseline_errors(scenarios) -> dict:
-  """Constant velocity and constant acceleration + yaw rate."""
+  """Constant velocity and constant acceleration + yaw rate; their `energy_score` is that of
+  a point mass (the root-mean-square displacement)."""
   gt = jnp.asarray(scenarios.future)
-  return {"cv": single_trajectory_errors(baselines.constant_velocity(scenarios.xi), gt),
-          "ca": single_trajectory_errors(
-              baselines.constant_acceleration_yaw_rate(scenarios.xi), gt)}
+  point_mass = lambda pred: {**single_trajectory_errors(pred, gt),
+                             "energy_score": probabilistic.energy_score(pred[:, None], gt)}
+  return {"cv": point_mass(baselines.constant_velocity(scenarios.xi)),
+          "ca": point_mass(baselines.constant_acceleration_yaw_rate(scenarios.xi))}
 
 
 def _subset_masks(labels):
@@ -228,7 +231,7 @@ def markdown_tables(results: dict) -> str:
                                                 "miss_rate", "hit_rate", "brier_min_fde",
                                                 "target_lane_hit"))
     lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} | {r['num_scenarios']} | "
-                 f"{'%.2f / %.2f' % paper if paper else '-'} |")
+                 f"{f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '-'} |")
   lines += ["", "| model | " + " | ".join(f"{s} ADE | {s} FDE" for s in constants.CLASS_NAMES)
             + " |", "|---|" + "---|---|" * len(constants.CLASS_NAMES)]
   for method, by_subset in results.items():
@@ -254,48 +257,3 @@ def markdown_tables(results: dict) -> str:
                    f"{fmt(r.get('nll_final'))} | {fmt(r.get('ece'), '{:.3f}')} | "
                    f"{fmt(r.get('brier_min_fde'))} |")
   return "\n".join(lines) + "\n"
-
-
-def gaussian_kl(mu_p, cov_p, mu_q, cov_q) -> float:
-  """KL(N(mu_p, cov_p) || N(mu_q, cov_q)) in nats (closed form)."""
-  d = len(mu_p)
-  inv_q = np.linalg.inv(cov_q)
-  diff = mu_q - mu_p
-  return 0.5 * float(np.trace(inv_q @ cov_p) + diff @ inv_q @ diff - d
-                     + np.linalg.slogdet(cov_q)[1] - np.linalg.slogdet(cov_p)[1])
-
-
-@dataclasses.dataclass(frozen=True)
-class TokenKL:
-  """Per codebook entry: training usage N_q and KL(p_q(Y) || p_theta,q(Y))."""
-
-  token: np.ndarray
-  usage: np.ndarray
-  kl: np.ndarray
-
-
-def kl_per_token(q_test, future, samples, train_usage, min_members: int = 3,
-                 ridge: float = 0.25) -> TokenKL:
-  """KL between the data and model distributions of the 5 s position per token.
-
-  p_q: Gaussian of the ground-truth final positions of the test scenarios with token
-  q; p_theta,q: Gaussian of all model samples' final positions for those scenarios.
-  A ridge (m^2) keeps tiny clusters' covariances invertible.
-
-  Args:
-    q_test: (M,) test tokens; future: (M, T, 2); samples: (M, N, T, 2);
-    train_usage: (Q,) training scenarios per token (N_q).
-  """
-  rows = []
-  for token in np.unique(q_test):
-    sel = q_test == token
-    if sel.sum() < min_members or train_usage[token] == 0:
-      continue
-    data = np.asarray(future)[sel, -1]
-    model = np.asarray(samples)[sel, :, -1].reshape(-1, 2)
-    eye = ridge * np.eye(2)
-    rows.append((token, train_usage[token],
-                 gaussian_kl(data.mean(0), np.cov(data.T) + eye, model.mean(0),
-                             np.cov(model.T) + eye)))
-  arr = np.array(rows, np.float64).reshape(-1, 3)
-  return TokenKL(token=arr[:, 0].astype(int), usage=arr[:, 1], kl=arr[:, 2])

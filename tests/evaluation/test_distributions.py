@@ -14,7 +14,8 @@ def _mixture(seed=0, m=3, k=2, t=4):
   return distributions.GaussianMixture(
       means=jnp.asarray(rng.normal(size=(m, k, t, 2))),
       stds=jnp.asarray(rng.uniform(0.3, 1.5, (m, k, t, 2))),
-      weights=jnp.asarray(w / w.sum(1, keepdims=True)))
+      weights=jnp.asarray(w / w.sum(1, keepdims=True)),
+  )
 
 
 def test_log_density_matches_scipy():
@@ -24,8 +25,11 @@ def test_log_density_matches_scipy():
   means, stds, w = map(np.asarray, (mix.means, mix.stds, mix.weights))
   for i in range(3):
     for t in range(4):
-      p = sum(w[i, k] * stats.multivariate_normal.pdf(
-          y[i, t], means[i, k, t], np.diag(stds[i, k, t] ** 2)) for k in range(2))
+      p = sum(
+          w[i, k]
+          * stats.multivariate_normal.pdf(y[i, t], means[i, k, t], np.diag(stds[i, k, t] ** 2))
+          for k in range(2)
+      )
       np.testing.assert_allclose(got[i, t], np.log(p), rtol=1e-5)
 
 

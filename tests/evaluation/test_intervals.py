@@ -17,8 +17,9 @@ def test_clear_difference_is_better_and_noise_is_a_tie():
   row = intervals.paired_difference(b - 0.5, b, groups)
   assert row["verdict"] == "better" and abs(row["difference"] + 0.5) < 1e-9
   assert intervals.paired_difference(b + 0.5, b, groups)["verdict"] == "worse"
-  noise = intervals.paired_difference(b + rng.normal(0, 0.1, 600), b + rng.normal(0, 0.1, 600),
-                                      groups)
+  noise = intervals.paired_difference(
+      b + rng.normal(0, 0.1, 600), b + rng.normal(0, 0.1, 600), groups
+  )
   assert noise["low"] < 0 < noise["high"] and noise["verdict"] == "tie"
 
 

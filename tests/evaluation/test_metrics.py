@@ -27,21 +27,24 @@ def test_min_k_masks_unused_slots():
 
 def test_most_likely_and_rates():
   gt = np.zeros((2, 125, 2), np.float32)
-  hyps = np.stack([np.stack([_line(0, 2.5), _line(1, 0), _line(0, 0)]),
-                   np.stack([_line(0, 1), _line(5, 0), _line(0, 0)])])
+  hyps = np.stack(
+      [
+          np.stack([_line(0, 2.5), _line(1, 0), _line(0, 0)]),
+          np.stack([_line(0, 1), _line(5, 0), _line(0, 0)]),
+      ]
+  )
   probs = np.array([[0.3, 0.7, 0.0], [0.6, 0.4, 0.0]], np.float32)
   ml = np.asarray(metrics.most_likely(hyps, probs))
   np.testing.assert_allclose(ml[0], _line(1, 0))
   np.testing.assert_allclose(ml[1], _line(0, 1))
-  out = metrics.multimodal_metrics(mean=np.stack([_line(0, 2.0), _line(0, 1.0)]),
-                                   hyp_means=hyps, hyp_probs=probs, gt=gt)
-  np.testing.assert_allclose(out["mean_fde"], [2.0, 1.0])
-  np.testing.assert_allclose(out["ml_ade"], [1.0, 1.0])
-  np.testing.assert_allclose(out["min_fde_k"], [1.0, 1.0])
-  np.testing.assert_allclose(out["hit_rate"], [0.0, 1.0])  # lateral 2.0 m vs 1.0 m
-  np.testing.assert_allclose(out["miss_rate"], [0.0, 0.0])
-  far = metrics.multimodal_metrics(mean=gt + 3, hyp_means=hyps + 3, hyp_probs=probs, gt=gt)
-  np.testing.assert_allclose(far["miss_rate"], [1.0, 1.0])
+  mean = np.stack([_line(0, 2.0), _line(0, 1.0)])
+  np.testing.assert_allclose(metrics.fde(mean, gt), [2.0, 1.0])
+  np.testing.assert_allclose(metrics.ade(ml, gt), [1.0, 1.0])
+  valid = probs > 0
+  np.testing.assert_allclose(metrics.min_fde_k(hyps, gt, valid), [1.0, 1.0])
+  np.testing.assert_allclose(metrics.hit(mean, gt), [0.0, 1.0])  # lateral 2.0 m vs 1.0 m
+  np.testing.assert_allclose(metrics.miss(metrics.min_fde_k(hyps, gt, valid)), [0.0, 0.0])
+  np.testing.assert_allclose(metrics.miss(metrics.min_fde_k(hyps + 3, gt, valid)), [1.0, 1.0])
 
 
 def test_final_lon_lat_by_hand():
@@ -60,7 +63,8 @@ def test_brier_min_fde_uses_the_probability_of_the_closest_hypothesis():
 
 def test_target_lane_hit_needs_enough_probability():
   gt = np.tile(_line(50, 3.5)[None], (2, 1, 1))
-  hyps = np.stack([np.stack([_line(50, 0.0), _line(48, 3.0)]),
-                   np.stack([_line(50, 0.0), _line(48, 3.0)])])
+  hyps = np.stack(
+      [np.stack([_line(50, 0.0), _line(48, 3.0)]), np.stack([_line(50, 0.0), _line(48, 3.0)])]
+  )
   probs = np.array([[0.6, 0.4], [0.9, 0.1]], np.float32)
   np.testing.assert_allclose(metrics.target_lane_hit(hyps, probs, gt), [1.0, 0.0])

@@ -26,12 +26,17 @@ def test_kernel_nll_is_the_hand_worked_mixture():
 
 def test_mixture_at_horizon_is_its_exact_density():
   rng = np.random.default_rng(0)
-  gm = GaussianMixture(jnp.asarray(rng.normal(size=(2, 3, 4, 2))),
-                       jnp.asarray(rng.uniform(0.5, 2.0, (2, 3, 4, 2))),
-                       jnp.asarray([[0.2, 0.3, 0.5], [0.6, 0.2, 0.2]]))
+  gm = GaussianMixture(
+      jnp.asarray(rng.normal(size=(2, 3, 4, 2))),
+      jnp.asarray(rng.uniform(0.5, 2.0, (2, 3, 4, 2))),
+      jnp.asarray([[0.2, 0.3, 0.5], [0.6, 0.2, 0.2]]),
+  )
   y = jnp.asarray(rng.normal(size=(2, 4, 2)))
-  np.testing.assert_allclose(np.asarray(regions.nll(regions.at_horizon(gm, 2), y[:, 2])),
-                             -np.asarray(gm.log_density(y))[:, 2], rtol=1e-5)
+  np.testing.assert_allclose(
+      np.asarray(regions.nll(regions.at_horizon(gm, 2), y[:, 2])),
+      -np.asarray(gm.log_density(y))[:, 2],
+      rtol=1e-5,
+  )
 
 
 def test_point_mass_bandwidth_recovers_the_error_spread():
@@ -51,6 +56,6 @@ def test_hdr_of_a_gaussian_is_the_disc():
   r = np.linspace(0.1, 4.0, m)
   y = np.stack([r, np.zeros(m)], 1)
   u, area = regions.hdr(jax.random.key(0), mix, y, (0.5, 0.9))
-  np.testing.assert_allclose(u, 1 - np.exp(-r ** 2 / (2 * s * s)), atol=0.1)
+  np.testing.assert_allclose(u, 1 - np.exp(-(r**2) / (2 * s * s)), atol=0.1)
   want = 2 * math.pi * s * s * -np.log(1 - np.array([0.5, 0.9]))
   np.testing.assert_allclose(area.mean(0), want, rtol=0.05)

@@ -21,21 +21,23 @@ def _flat(a, t):
 def test_uniform_fair_matches_scoringrules():
   x, y = _case(0)
   w = np.full(x.shape[:2], 1.0 / x.shape[1])
-  got = probabilistic.weighted_energy_score(jnp.asarray(x), jnp.asarray(w), jnp.asarray(y),
-                                            fair=True)
+  got = probabilistic.weighted_energy_score(
+      jnp.asarray(x), jnp.asarray(w), jnp.asarray(y), fair=True
+  )
   want = sr.es_ensemble(_flat(y, 5), _flat(x, 5), estimator="fair", backend="numpy")
   np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
-  np.testing.assert_allclose(np.asarray(probabilistic.energy_score(jnp.asarray(x),
-                                                                   jnp.asarray(y))), want,
-                             rtol=1e-5)
+  np.testing.assert_allclose(
+      np.asarray(probabilistic.energy_score(jnp.asarray(x), jnp.asarray(y))), want, rtol=1e-5
+  )
 
 
 def test_weighted_exact_equals_repeated_points():
   """Weights (1/2, 1/4, 1/4) are the ensemble (a, a, b, c) under the all-pairs score."""
   x, y = _case(1, n=3)
   w = np.tile([0.5, 0.25, 0.25], (x.shape[0], 1))
-  got = probabilistic.weighted_energy_score(jnp.asarray(x), jnp.asarray(w), jnp.asarray(y),
-                                            fair=False)
+  got = probabilistic.weighted_energy_score(
+      jnp.asarray(x), jnp.asarray(w), jnp.asarray(y), fair=False
+  )
   repeated = x[:, [0, 0, 1, 2]]
   want = sr.es_ensemble(_flat(y, 5), _flat(repeated, 5), estimator="nrg", backend="numpy")
   np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
@@ -57,6 +59,7 @@ def test_point_mass_is_the_distance_and_fair_needs_two_points():
   y = np.zeros((1, 4, 2))
   x = np.full((1, 1, 4, 2), [3.0, 4.0])
   for fair in (True, False):
-    got = probabilistic.weighted_energy_score(jnp.asarray(x), jnp.ones((1, 1)), jnp.asarray(y),
-                                              fair=fair)
+    got = probabilistic.weighted_energy_score(
+        jnp.asarray(x), jnp.ones((1, 1)), jnp.asarray(y), fair=fair
+    )
     np.testing.assert_allclose(np.asarray(got), [5.0], rtol=1e-6)

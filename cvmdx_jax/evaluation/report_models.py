@@ -1,0 +1,98 @@
+"""The trained runs of a report, loaded and checked once for all its splits."""
+
+import dataclasses
+
+import numpy as np
+
+from cvmdx_jax.evaluation import learned_baseline
+from cvmdx_jax.inference import mdn_baseline
+from cvmdx_jax.inference.bundles import load_baseline, load_denoiser
+from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
+from cvmdx_jax.runs import tokens as tokens_lib
+from cvmdx_jax.storage import identity
+
+
+@dataclasses.dataclass(frozen=True)
+class Models:
+  """What a report evaluates, loaded once for all its splits.
+
+  Attributes:
+    predictor: cVMDx (`Predictor`, with the sampling overrides applied).
+    ddpm: the `Predictor` of the single-DDPM row (it shares the tokeniser bundle), or None.
+    baseline: the WTA MLP (`LearnedBaseline`) or None; mdn: the MDN or None.
+    usage: (Q,) training scenarios per token (from the tokeniser's train tokens).
+    dirs: {role: run directory} for the report's `_meta`.
+  """
+
+  predictor: Predictor
+  ddpm: Predictor | None
+  baseline: object
+  mdn: object
+  usage: np.ndarray
+  dirs: dict
+
+
+def load(
+    *,
+    tokenizer_dir,
+    diffusion_dir,
+    sampling_overrides=None,
+    baseline_dir=None,
+    ddpm_diffusion_dir=None,
+    mdn_dir=None,
+) -> Models:
+  """Loads and checks the runs of a report (arguments as in `run`); the tokeniser is
+  restored once. Raises what `Predictor.load` and `learned_baseline.check_tokenizer` raise."""
+  predictor = Predictor.load(tokenizer_dir, diffusion_dir)
+  if sampling_overrides:
+    predictor = dataclasses.replace(
+        predictor, sampling=dataclasses.replace(predictor.sampling, **sampling_overrides)
+    )
+  baseline = None if baseline_dir is None else load_baseline(baseline_dir)
+  mdn = None if mdn_dir is None else mdn_baseline.load_mdn(mdn_dir)
+  for model, where in ((baseline, baseline_dir), (mdn, mdn_dir)):
+    if model is not None:
+      learned_baseline.check_tokenizer(model, predictor.tokenizer, str(where))
+  ddpm = predictor
+  if ddpm_diffusion_dir is not None:
+    denoiser = load_denoiser(ddpm_diffusion_dir)
+    identity.check(
+        denoiser.fingerprint.to_dict()["tokenizer"],
+        predictor.tokenizer.checkpoint.to_dict(),
+        f"denoiser {ddpm_diffusion_dir} (not trained on tokens of tokeniser " f"{tokenizer_dir})",
+        IncompatibleRunsError,
+    )
+    ddpm = Predictor(
+        tokenizer=predictor.tokenizer,
+        denoiser=denoiser,
+        sampling=denoiser.config.sampling,
+        delta_limit=predictor.delta_limit,
+    )
+  if ddpm.denoiser.progressive:
+    ddpm = None
+  train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
+  q_count = predictor.tokenizer.config.quantizer.codebook_size
+  dirs = {
+      "tokenizer_dir": str(tokenizer_dir),
+      "diffusion_dir": str(diffusion_dir),
+      "ddpm_diffusion_dir": None if ddpm_diffusion_dir is None else str(ddpm_diffusion_dir),
+      "baseline_dir": None if baseline_dir is None else str(baseline_dir),
+      "mdn_dir": None if mdn_dir is None else str(mdn_dir),
+  }
+  return Models(predictor, ddpm, baseline, mdn, np.bincount(train.q, minlength=q_count), dirs)
+
+
+def sampling_meta(predictor: Predictor) -> dict:
+  """The sampling settings of a report with the denoiser's control scale, conditioning and
+  residual base among them (where metrics.json has always listed them)."""
+  targets = predictor.denoiser.config.diffusion
+  out = {}
+  for name, value in dataclasses.asdict(predictor.sampling).items():
+    out[name] = value
+    if name == "clip_x0":
+      out.update(
+          control_scale=targets.control_scale,
+          conditioning=targets.conditioning,
+          residual_decay_s=targets.residual_decay_s,
+      )
+  return out

@@ -1,0 +1,171 @@
+"""The quality benchmark: the demo's trained models on large new SUMO test sets.
+
+  .venv/bin/python experiments/benchmark_quality.py --workdir=runs/quality \\
+      --runs=runs/demo,runs/demo_s1,runs/demo_s2        # or: make benchmark-quality
+
+Builds once (cached in `<workdir>/data`) new recordings of the test roads (`--test_recordings`
+of 240 s drawn from the test ranges of configs/dataset.py with SUMO seed `--sumo_seed`, not
+the demo's 0) and of the held-out road (`--ood_recordings` of 100 s): >= 1,000 scenarios per
+class on each. Then, per trained run (a `make demo` directory with data/, tokenizer/, the
+`--denoiser` run, baseline/ and, where present, mdn/), scores every model
+(`evaluation.predictive`) with the same proper scores (`evaluation.model_scores`):
+settings (kernel bandwidths) chosen and regions calibrated on the run's own val split,
+scored on the new test and test_ood sets and on the run's val_ood. Writes
+`<workdir>/quality.md` (tables with vehicle-bootstrap intervals),
+`quality.json`, `scores_<run>_<split>.npz` (every model's per-scenario scores) and
+`region_reliability_<split>.png`.
+"""
+
+import json
+import time
+from pathlib import Path
+
+from absl import app, flags
+
+from configs import dataset as dataset_config
+from cvmdx_jax import cli
+from cvmdx_jax.data import dataset
+from cvmdx_jax.data.scenarios import balanced_indices
+from cvmdx_jax.evaluation import figures, learned_baseline, quality, quality_tables, regions
+from cvmdx_jax.inference import mdn_baseline
+from cvmdx_jax.inference.bundles import load_baseline
+from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.storage import atomic, checksums
+
+_WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (dataset cached inside).")
+_RUNS = flags.DEFINE_list("runs", None, "Trained demo directories (one per training seed).")
+_DENOISER = flags.DEFINE_string(
+    "denoiser", "student_progressive_2", "The denoiser run inside each demo directory."
+)
+_TEST = flags.DEFINE_integer(
+    "test_recordings", 4, "New test-road recordings of 240 s.", lower_bound=1
+)
+_OOD = flags.DEFINE_integer(
+    "ood_recordings", 3, "New held-out-road recordings of 100 s.", lower_bound=1
+)
+_DURATION = flags.DEFINE_float(
+    "duration_s", 240.0, "Seconds per test-road recording.", lower_bound=60.0
+)
+_SUMO_SEED = flags.DEFINE_integer(
+    "sumo_seed", 101, "SUMO seed of the new recordings.", lower_bound=1
+)
+_MAX = flags.DEFINE_integer(
+    "max_scenarios", 0, "Class-balanced subset per split (0 = all).", lower_bound=0
+)
+_SEED = flags.DEFINE_integer("seed", 0, "Sampling, Monte Carlo and bootstrap seed.", lower_bound=0)
+flags.mark_flags_as_required(["workdir", "runs"])
+cli.output_dirs("workdir")
+
+SCORED = ("test", "test_ood", "val_ood")
+
+
+def _large_test_sets(data_dir: Path) -> dict:
+  config = dataset_config.get_config()
+  config.sumo.seed = _SUMO_SEED.value
+  config.sumo.duration_s = _DURATION.value
+  config.sumo.recordings.update(
+      {"train": 0, "val": 0, "val_ood": 0, "test": _TEST.value, "test_ood": _OOD.value}
+  )
+  return dataset.build(config, data_dir)
+
+
+def _subset(scenarios):
+  if not _MAX.value or len(scenarios) <= _MAX.value:
+    return scenarios
+  return scenarios.take(balanced_indices(scenarios.label, _SEED.value, _MAX.value))
+
+
+def _score_run(run: Path, large: dict, log):
+  predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
+  baseline = None
+  if (run / "baseline").is_dir():
+    baseline = load_baseline(run / "baseline")
+    learned_baseline.check_tokenizer(baseline, predictor.tokenizer, str(run / "baseline"))
+  mdn_fn = None
+  if (run / "mdn").is_dir():
+    mdn = mdn_baseline.load_mdn(run / "mdn")
+    learned_baseline.check_tokenizer(mdn, predictor.tokenizer, str(run / "mdn"))
+    mdn_fn = lambda out, s: mdn(out.q, out.delta, s.xi, s.mask, s.v0, s.psi0)
+  splits = {
+      "test": _subset(large["test"]),
+      "test_ood": _subset(large["test_ood"]),
+      "val_ood": _subset(dataset.load_split(run / "data", "val_ood")),
+  }
+  val = _subset(dataset.load_split(run / "data", "val"))
+  return quality.evaluate_run(predictor, baseline, mdn_fn, val, splits, seed=_SEED.value, log=log)
+
+
+def _files(workdir: Path, runs: dict, build_s: float, seconds: dict) -> dict:
+  doc = {"build_s": build_s, "seconds": seconds, "splits": {}}
+  md = ["# Quality benchmark", ""]
+  for split in SCORED:
+    table = quality_tables.summary(runs, split)
+    diffs = quality_tables.differences(runs, split)
+    doc["splits"][split] = {"summary": table, "differences": diffs}
+    md += [
+        f"## {split}",
+        "",
+        quality_tables.summary_table(table),
+        quality_tables.difference_table(diffs),
+    ]
+  md += [
+      "## Calibrated 90 % regions",
+      "",
+      quality_tables.calibration_table(runs, SCORED),
+      "## Hypothesis sets of p(c) at 0.9",
+      "",
+      quality_tables.hypothesis_set_table(runs, SCORED),
+  ]
+  doc["bandwidths"] = {name: r.bandwidths for name, r in runs.items()}
+  files = {
+      workdir / "quality.json": atomic.json_text(doc).encode(),
+      workdir / "quality.md": "\n".join(md).encode(),
+  }
+  first = next(iter(runs.values()))
+  for split in SCORED:
+    u = {
+        m: {s: row[f"hdr_u_{s}s"] for s in regions.HORIZONS_S}
+        for m, row in first.splits[split].items()
+        if m != "meta"
+    }
+    files[workdir / f"region_reliability_{split}.png"] = figures.plot_region_reliability(
+        u, regions.HORIZONS_S, f"{next(iter(runs))}, {split}"
+    )
+    for name, r in runs.items():
+      data = r.splits[split]
+      arrays = {
+          **data["meta"],
+          **{f"{m}__{k}": v for m, row in data.items() if m != "meta" for k, v in row.items()},
+      }
+      files[workdir / f"scores_{name}_{split}.npz"] = checksums.npz_bytes(**arrays)
+  return files
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  workdir = Path(_WORKDIR.value)
+  runs = [Path(r) for r in _RUNS.value]
+  for run in runs:
+    for part in ("tokenizer", _DENOISER.value, "data"):
+      if not (run / part).is_dir():
+        raise app.UsageError(f"--runs: {run / part} is not a directory (a make demo run?)")
+  start = time.time()
+  large = _large_test_sets(workdir / "data")
+  build_s = round(time.time() - start, 1)
+  print(
+      f"test sets: {', '.join(f'{k} {len(v)}' for k, v in large.items())} ({build_s} s)", flush=True
+  )
+  scored, seconds = {}, {}
+  for run in runs:
+    start = time.time()
+    print(f"scoring {run}", flush=True)
+    scored[run.name] = _score_run(run, large, lambda m: print(m, flush=True))
+    seconds[run.name] = round(time.time() - start, 1)
+  checksums.write_all(_files(workdir, scored, build_s, seconds))
+  print((workdir / "quality.md").read_text())
+  print(json.dumps({"build_s": build_s, "seconds": seconds}))
+
+
+if __name__ == "__main__":
+  cli.run(main)
