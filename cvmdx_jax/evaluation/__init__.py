@@ -12,8 +12,7 @@
   report_models, report_files  the runs of a report loaded once; its files written as one
 
 The quality benchmark (experiments/benchmark_quality.py), the same definitions for every
-model:
-  distributions  WeightedSamples and GaussianMixture, the two forms every scorer takes
+model (each takes `inference.distributions.WeightedSamples` or `GaussianMixture`):
   regions    density at 1..5 s (kernels with val-chosen bandwidths, or a mixture's own),
              NLL, highest-density regions (coverage, area)
   model_scores  per-scenario proper and point scores of one model

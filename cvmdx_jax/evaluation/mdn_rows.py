@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax.evaluation import probabilistic, scoring
-from cvmdx_jax.evaluation.distributions import GaussianMixture
+from cvmdx_jax.inference.distributions import GaussianMixture
 
 METHODS = ("mdn_mean", "mdn_best_of_k")
 ES_SAMPLES = 64

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax.evaluation import metrics, probabilistic, regions, scoring
-from cvmdx_jax.evaluation.distributions import GaussianMixture, WeightedSamples
+from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 ES_SAMPLES = 64  # draws of a GaussianMixture for its energy score
 _ES_CHUNK = 512

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax.evaluation import baselines
-from cvmdx_jax.evaluation.distributions import GaussianMixture, WeightedSamples
 from cvmdx_jax.evaluation.model_scores import Model
+from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 TITLES = {
     "cvmdx_samples": "cVMDx, N samples",

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import constants
-from cvmdx_jax.evaluation.distributions import GaussianMixture, WeightedSamples
+from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 HORIZONS_S = (1, 2, 3, 4, 5)
 HORIZON_STEPS = tuple(round(s / constants.DT) - 1 for s in HORIZONS_S)  # future index at s

@@ -1,6 +1,6 @@
 """The trained mixture density baseline for inference: `load_mdn(workdir)` ->
 `MixtureDensityBaseline`, called like the multiple-choice baseline's `LearnedBaseline`
-but returning the predictive distribution, an `evaluation.distributions.GaussianMixture`.
+but returning the predictive distribution, an `inference.distributions.GaussianMixture`.
 
     mdn = load_mdn("runs/demo/mdn")
     mixture = mdn(q, delta, scenarios.xi, scenarios.mask, scenarios.v0, scenarios.psi0)
@@ -20,7 +20,7 @@ from flax import nnx
 
 from cvmdx_jax import ego_motion
 from cvmdx_jax.config.mdn import MDNRunConfig
-from cvmdx_jax.evaluation.distributions import GaussianMixture
+from cvmdx_jax.inference.distributions import GaussianMixture
 from cvmdx_jax.models import mdn
 from cvmdx_jax.runs import loaders
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax.evaluation import regions
-from cvmdx_jax.evaluation.distributions import GaussianMixture, WeightedSamples
+from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 
 def test_horizon_steps_are_whole_seconds():

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from cvmdx_jax.evaluation import distributions
+from cvmdx_jax.inference import distributions
 
 
 def _mixture(seed=0, m=3, k=2, t=4):
