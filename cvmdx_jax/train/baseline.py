@@ -205,11 +205,6 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
                               jax.eval_shape(lambda k: mc.init(model_cfg, k)[1],
                                              jax.random.key(0)))
 
-  def epoch_end_fn(state, epoch):
-    del epoch
-    return {**{f"val_{k}": v for k, v in state["val"].items()},
-            "best_epoch": state["best"]["epoch"], "best_val_score": state["best"]["val_score"]}
-
   return loop.train(
       workdir=workdir, init_fn=make_init_fn(model_cfg, tx, val_shapes),
       step_fn=make_step_fn(graphdef, model_cfg, tx, cls_weight=cls_weight, val=val,
@@ -217,5 +212,13 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
       data=data, batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
       seed=config.seed, fingerprint=fingerprints.baseline(config, dataset_id, meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      epoch_end_fn=epoch_end_fn, on_start=lambda: layout.write_run_config(workdir, config),
+      epoch_end_fn=val_summary, on_start=lambda: layout.write_run_config(workdir, config),
       desc="baseline")
+
+
+def val_summary(state, epoch) -> dict:
+  """The metrics line's val part (`loop.train`'s `epoch_end_fn`): the last val read-outs
+  as `val_<name>`, the chosen epoch and its val score."""
+  del epoch
+  return {**{f"val_{k}": v for k, v in state["val"].items()},
+          "best_epoch": state["best"]["epoch"], "best_val_score": state["best"]["val_score"]}

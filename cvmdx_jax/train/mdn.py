@@ -118,11 +118,6 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
                               jax.eval_shape(lambda k: mdn.init(model_cfg, k)[1],
                                              jax.random.key(0)))
 
-  def epoch_end_fn(state, epoch):
-    del epoch
-    return {**{f"val_{k}": v for k, v in state["val"].items()},
-            "best_epoch": state["best"]["epoch"], "best_val_score": state["best"]["val_score"]}
-
   return loop.train(
       workdir=workdir, init_fn=baseline.make_init_fn(model_cfg, tx, val_shapes, init=mdn.init),
       step_fn=make_step_fn(graphdef, model_cfg, tx, config, val=val,
@@ -130,5 +125,5 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
       data=data, batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
       seed=config.seed, fingerprint=fingerprint(config, dataset_id, meta),
       checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      epoch_end_fn=epoch_end_fn, on_start=lambda: layout.write_run_config(workdir, config),
+      epoch_end_fn=baseline.val_summary, on_start=lambda: layout.write_run_config(workdir, config),
       desc="mdn")
