@@ -61,3 +61,14 @@ def scenarios_factory():
   maneuver classes for the tokeniser's model and trainer tests."""
   from tests.models import tokenizer_data
   return tokenizer_data.make_scenarios
+
+
+@pytest.fixture(scope="session")
+def tiny_runs(tmp_path_factory, request, eclipse_sumo) -> Path:
+  """Root of tiny trained runs (data/, tokenizer/, diffusion/: tests/fixtures_runs.py), built
+  once per session; under xdist once for all workers (in the run's shared temp directory).
+  Read-only: tests write into their own `tmp_path`."""
+  from tests import fixtures_runs
+  shared = hasattr(request.config, "workerinput")  # an xdist worker
+  base = tmp_path_factory.getbasetemp()
+  return fixtures_runs.build((base.parent if shared else base) / "tiny_runs")

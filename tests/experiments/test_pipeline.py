@@ -24,8 +24,7 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import ego_motion
-from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
-                                   TokenizerRunConfig)
+from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig)
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import learned_baseline, report, scoring
@@ -34,40 +33,25 @@ from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.storage import atomic, checkpointing, checksums
-from cvmdx_jax.train import baseline, diffusion, distill, tokenizer
+from cvmdx_jax.train import baseline, diffusion, distill
+from tests import fixtures_runs
 from tests.subprocess_env import environ
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _train_tokenizer(config, workdir):
-  return tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(config), workdir)
+@pytest.fixture
+def runs(tiny_runs):
+  """The session's tiny data, tokeniser and denoiser (tests/fixtures_runs.py); read-only."""
+  return tiny_runs
 
 
-def _train_diffusion(config, workdir):
-  return diffusion.train(DiffusionRunConfig.from_config(config), workdir)
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory, eclipse_sumo):
-  root = tmp_path_factory.mktemp("pipeline")
-  data_dir = root / "data"
-  dataset.build(dataset_config.get_config("tiny"), data_dir)
-  tok = tokenizer_config.get_config("tiny")
-  tok.data_dir = str(data_dir)
-  _train_tokenizer(tok, root / "tokenizer")
-  diff = diffusion_config.get_config("tiny")
-  diff.data_dir, diff.tokenizer_dir = str(data_dir), str(root / "tokenizer")
-  _train_diffusion(diff, root / "diffusion")
-  return root
-
-
-def test_report_has_every_method_subset_and_figure(runs):
+def test_report_has_every_method_subset_and_figure(runs, tmp_path):
   results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-                       data_dir=runs / "data", workdir=runs / "eval", max_scenarios=30,
+                       data_dir=runs / "data", workdir=tmp_path / "eval", max_scenarios=30,
                        ddpm_scenarios=3)
-  saved = json.loads((runs / "eval" / "metrics.json").read_text())
+  saved = json.loads((tmp_path / "eval" / "metrics.json").read_text())
   assert set(scoring.METHODS) <= set(saved)
   for method in scoring.METHODS:
     assert set(saved[method]) == set(scoring.SUBSETS)
@@ -75,7 +59,8 @@ def test_report_has_every_method_subset_and_figure(runs):
       row = saved[method][subset]
       assert {"ade", "fde", "final_lon", "final_lat", "miss_rate", "hit_rate",
               "num_scenarios"} <= set(row)
-      assert np.isfinite(row["ade"]) and np.isfinite(row["fde"]) and min(row["ade"], row["fde"]) >= 0
+      assert np.isfinite(row["ade"]) and np.isfinite(row["fde"])
+      assert min(row["ade"], row["fde"]) >= 0
       # per scenario max(|dx|, |dy|) <= fde <= |dx| + |dy|; averaged, hypot(mean |dx|,
       # mean |dy|) <= mean fde (Minkowski)
       assert max(row["final_lon"], row["final_lat"]) <= row["fde"] + 1e-5
@@ -92,7 +77,7 @@ def test_report_has_every_method_subset_and_figure(runs):
     assert 0 <= saved["cvmdx_mean"][subset]["energy_score"] < np.inf
   diagram = saved["_meta"]["reliability"]
   assert sum(diagram["count"]) >= 30 and len(diagram["accuracy"]) == 10
-  assert (runs / "eval" / "reliability.png").stat().st_size > 1000
+  assert (tmp_path / "eval" / "reliability.png").stat().st_size > 1000
   mean = saved["cvmdx_mean"]
   assert 0 <= mean["all"]["out_of_distribution"] <= 1
   assert -1 <= mean["all"]["delta_ade_spearman"] <= 1
@@ -101,12 +86,12 @@ def test_report_has_every_method_subset_and_figure(runs):
   assert saved["ddpm_single"]["all"]["num_scenarios"] == 3
   assert results["cvmdx_best_of_k"]["all"]["ade"] <= results["cvmdx_most_likely"]["all"]["ade"]
   for name in ("kl_vs_usage", "predictions_kl", "predictions_lcr", "predictions_lcl"):
-    assert (runs / "eval" / f"{name}.png").stat().st_size > 1000
-  table = (runs / "eval" / "results.md").read_text()
+    assert (tmp_path / "eval" / f"{name}.png").stat().st_size > 1000
+  table = (tmp_path / "eval" / "results.md").read_text()
   assert "| Constant velocity |" in table and "Brier-minFDE" in table
   # predictions.npz: the evaluated scenarios row by row, their errors recomputed from the
   # stored mean and hypotheses against the split's own futures
-  arrays = checksums.read_npz(runs / "eval" / "predictions.npz")
+  arrays = checksums.read_npz(tmp_path / "eval" / "predictions.npz")
   split = dataset.load_split(runs / "data", "test")
   rows = balanced_indices(split.label, 0, 30)
   for field in ("recording_id", "track_id", "frame", "label"):
@@ -163,15 +148,15 @@ def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatc
 
 
 @pytest.mark.slow
-def test_report_sampling_overrides_reach_the_predictor(runs):
+def test_report_sampling_overrides_reach_the_predictor(runs, tmp_path):
   """evaluate.py --sampler/--steps: the report samples with the override, and its mean
   trajectory is the one a Predictor with that sampling gives."""
   scenarios = dataset.load_split(runs / "data", "test")
   scenarios = scenarios.take(balanced_indices(scenarios.label, 0, 6))
   results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-                       data_dir=runs / "data", workdir=runs / "eval_ddim2", max_scenarios=6,
+                       data_dir=runs / "data", workdir=tmp_path / "eval_ddim2", max_scenarios=6,
                        ddpm_scenarios=0, sampling_overrides={"sampler": "ddim", "steps": 2})
-  meta = json.loads((runs / "eval_ddim2" / "metrics.json").read_text())["_meta"]
+  meta = json.loads((tmp_path / "eval_ddim2" / "metrics.json").read_text())["_meta"]
   assert (meta["sampling"]["sampler"], meta["sampling"]["steps"]) == ("ddim", 2)
   predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
   predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
@@ -319,7 +304,7 @@ def test_predictor_refuses_bad_scenarios(runs):
 def test_runs_that_do_not_belong_together_are_refused(runs, tmp_path):
   other = tokenizer_config.get_config("tiny,q=5")
   other.data_dir = str(runs / "data")
-  _train_tokenizer(other, tmp_path / "other_tokenizer")
+  fixtures_runs.train_tokenizer(other, tmp_path / "other_tokenizer")
   with pytest.raises(IncompatibleRunsError, match="5"):
     Predictor.load(tmp_path / "other_tokenizer", runs / "diffusion")
 
@@ -337,7 +322,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   np.testing.assert_allclose(data["ego"], ego)
   np.testing.assert_allclose(data["x0"], np.clip((train.controls - base) / scale, -1, 1),
                              atol=1e-6)
-  _train_diffusion(diff, tmp_path / "ego")
+  fixtures_runs.train_diffusion(diff, tmp_path / "ego")
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "ego")
   assert predictor.denoiser.config.diffusion.conditioning == "ego_film_residual"
   assert predictor.denoiser.unet.cond_dim == ego_motion.NUM_FEATURES
@@ -348,7 +333,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   assert a.prediction.trajectories.shape == (5, 9, 125, 2)
   with pytest.raises(ValueError, match="diffusion.conditioning"):
     diff.diffusion.conditioning = "ego"
-    _train_diffusion(diff, tmp_path / "bad")
+    fixtures_runs.train_diffusion(diff, tmp_path / "bad")
   assert not (tmp_path / "bad").exists()
 
 
@@ -358,7 +343,7 @@ def test_denoiser_of_another_feature_count_is_refused(runs, tmp_path, monkeypatc
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   diff.diffusion.conditioning = "ego_film"
-  _train_diffusion(diff, tmp_path / "ego")
+  fixtures_runs.train_diffusion(diff, tmp_path / "ego")
   monkeypatch.setattr(ego_motion, "NUM_FEATURES", ego_motion.NUM_FEATURES + 1)
   with pytest.raises(checkpointing.CheckpointMismatchError, match="ego-motion features"):
     Predictor.load(runs / "tokenizer", tmp_path / "ego")
@@ -567,7 +552,7 @@ def test_intent_conditioned_run_trains_distills_and_predicts(runs, tmp_path):
   ego = np.asarray(ego_motion.ego_features(train.xi, train.mask))
   np.testing.assert_allclose(data["ego"], np.concatenate([ego, np.eye(3)[train.label]], -1))
   np.testing.assert_array_equal(data["label"], train.label)
-  _train_diffusion(diff, tmp_path / "intent")
+  fixtures_runs.train_diffusion(diff, tmp_path / "intent")
   scenarios = dataset.load_split(runs / "data", "test").take(np.arange(4))
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "intent")
   assert predictor.denoiser.unet.num_intents == 3

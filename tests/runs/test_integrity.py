@@ -15,11 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from configs import dataset as dataset_config
-from configs import diffusion as diffusion_config
-from configs import tokenizer as tokenizer_config
 from cvmdx_jax import sharding
-from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.data import dataset
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
 from cvmdx_jax.runs import loaders as runs_lib
@@ -27,41 +23,27 @@ from cvmdx_jax.runs import tokens
 from cvmdx_jax.storage import atomic, checkpointing, checksums, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.storage.checksums import CorruptRunError
-from cvmdx_jax.train import diffusion, tokenizer
+from tests import fixtures_runs
 
 
-def _tok_config(data_dir, arg="tiny"):
-  config = tokenizer_config.get_config(arg)
-  config.data_dir = str(data_dir)
-  return config
+def _diff_config(root, tokenizer_dir=None):
+  return fixtures_runs.diffusion_config_for(root / "data", tokenizer_dir or root / "tokenizer")
 
 
-def _diff_config(root, tokenizer_dir="tokenizer"):
-  config = diffusion_config.get_config("tiny")
-  config.data_dir, config.tokenizer_dir = str(root / "data"), str(root / tokenizer_dir)
-  return config
-
-
-def _train_tokenizer(config, workdir, **kwargs):
-  return tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(config), workdir, **kwargs)
-
-
-def _train_diffusion(config, workdir):
-  return diffusion.train(DiffusionRunConfig.from_config(config), workdir)
+@pytest.fixture
+def runs(tiny_runs):
+  """The session's tiny data, tokeniser and denoiser (tests/fixtures_runs.py); read-only."""
+  return tiny_runs
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory, eclipse_sumo):
-  """A tiny dataset, a tokeniser, a denoiser on it, and a second tokeniser (seed 1) of the
-  same fingerprint and step but other weights."""
-  root = tmp_path_factory.mktemp("integrity")
-  dataset.build(dataset_config.get_config("tiny"), root / "data")
-  _train_tokenizer(_tok_config(root / "data"), root / "tokenizer")
-  _train_diffusion(_diff_config(root), root / "diffusion")
-  other = _tok_config(root / "data")
-  other.seed = 1
-  _train_tokenizer(other, root / "tokenizer_seed1")
-  return root
+def other_tokenizer(tiny_runs, tmp_path_factory):
+  """A second tokeniser (seed 1) of the same fingerprint and step but other weights."""
+  config = fixtures_runs.tokenizer_config_for(tiny_runs / "data")
+  config.seed = 1
+  workdir = tmp_path_factory.mktemp("integrity") / "tokenizer_seed1"
+  fixtures_runs.train_tokenizer(config, workdir)
+  return workdir
 
 
 def _snapshot(directory: Path) -> dict[str, tuple[bytes, int]]:
@@ -82,24 +64,26 @@ def test_refused_tokenizer_resume_leaves_the_directory_unchanged(runs):
   before = _snapshot(workdir)
   assert {"tokenizer.json", "checksums.json", "metrics.jsonl", "tokens/train.npz",
           "tokens/gaussians.npz"} <= set(before)
-  other_q = _tok_config(runs / "data", "tiny,q=5")
-  other_size = _tok_config(runs / "data")
+  other_q = fixtures_runs.tokenizer_config_for(runs / "data", "tiny,q=5")
+  other_size = fixtures_runs.tokenizer_config_for(runs / "data")
   other_size.model.encoder.latent_dim = 6
-  other_batch = _tok_config(runs / "data")  # same fingerprint, other loop settings
+  # same fingerprint, other loop settings
+  other_batch = fixtures_runs.tokenizer_config_for(runs / "data")
   other_batch.train.batch_size *= 2
   for config, differing in ((other_q, "codebook_size"), (other_size, "latent_dim"),
                             (other_batch, "batch_size")):
     with pytest.raises(CheckpointMismatchError, match=differing):
-      _train_tokenizer(config, workdir)
+      fixtures_runs.train_tokenizer(config, workdir)
     assert _snapshot(workdir) == before, differing
   splits = {s: dataset.load_split(runs / "data", s) for s in ("train", "val")}
   splits["train"] = splits["train"].take(np.arange(len(splits["train"]) - 1))  # other data
   with pytest.raises(CheckpointMismatchError, match="dataset_id"):
-    _train_tokenizer(_tok_config(runs / "data"), workdir, splits=splits)
+    fixtures_runs.train_tokenizer(fixtures_runs.tokenizer_config_for(runs / "data"), workdir,
+                                  splits=splits)
   assert _snapshot(workdir) == before
 
 
-def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs):
+def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs, other_tokenizer):
   workdir = runs / "diffusion"
   before = _snapshot(workdir)
   assert {"config.json", "checksums.json", "metrics.jsonl"} <= set(before)
@@ -107,11 +91,11 @@ def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs):
   other_scale.diffusion.control_scale = (4.0, 0.7 * 2)
   other_size = _diff_config(runs)
   other_size.model.base_channels *= 2
-  other_tokenizer = _diff_config(runs, "tokenizer_seed1")
+  other_tokens = _diff_config(runs, other_tokenizer)
   for config, differing in ((other_scale, "control_scale"), (other_size, "other model size"),
-                            (other_tokenizer, "params_id")):
+                            (other_tokens, "params_id")):
     with pytest.raises(CheckpointMismatchError, match=differing):
-      _train_diffusion(config, workdir)
+      fixtures_runs.train_diffusion(config, workdir)
     assert _snapshot(workdir) == before, differing
   loaded = runs_lib.load_denoiser(workdir)  # still the run it was
   assert loaded.config.diffusion.control_scale == (4.0, 0.7)
@@ -120,7 +104,9 @@ def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs):
 def test_finished_run_rerun_with_its_config_still_verifies(runs, tmp_path):
   workdir = tmp_path / "diffusion"
   shutil.copytree(runs / "diffusion", workdir)
-  _train_diffusion(_diff_config(runs), workdir)
+  before = {name: data for name, (data, _) in _snapshot(workdir).items()}
+  fixtures_runs.train_diffusion(_diff_config(runs), workdir)  # nothing left to train
+  assert {name: data for name, (data, _) in _snapshot(workdir).items()} == before
   with warnings.catch_warnings():
     warnings.simplefilter("error")  # every file and checkpoint carries its checksum
     Predictor.load(runs / "tokenizer", workdir)
@@ -188,19 +174,20 @@ def test_a_checkpoint_step_records_the_sha256_of_every_file_orbax_wrote(tmp_path
     checkpointing.load_latest(tmp_path, abstract)
 
 
-def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(runs):
+def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(
+    runs, other_tokenizer):
   a = runs_lib.load_tokenizer(runs / "tokenizer")
-  b = runs_lib.load_tokenizer(runs / "tokenizer_seed1")
+  b = runs_lib.load_tokenizer(other_tokenizer)
   assert a.fingerprint == b.fingerprint and a.checkpoint.step == b.checkpoint.step
   with pytest.raises(IncompatibleRunsError, match="params_id"):
-    Predictor.load(runs / "tokenizer_seed1", runs / "diffusion")
+    Predictor.load(other_tokenizer, runs / "diffusion")
 
 
 def test_denoiser_refuses_its_tokeniser_trained_further(runs, tmp_path):
   shutil.copytree(runs / "tokenizer", tmp_path / "tokenizer")
-  config = _tok_config(runs / "data")
+  config = fixtures_runs.tokenizer_config_for(runs / "data")
   config.train.num_epochs += 1
-  _train_tokenizer(config, tmp_path / "tokenizer")
+  fixtures_runs.train_tokenizer(config, tmp_path / "tokenizer")
   with pytest.raises(IncompatibleRunsError, match="step"):
     Predictor.load(tmp_path / "tokenizer", runs / "diffusion")
 
