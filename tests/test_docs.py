@@ -170,6 +170,7 @@ def flags_missing(text: str) -> list[str]:
   """`--flag`s of an `experiments/*.py` command in `text` that the script does not define."""
   missing = []
   for line in text.replace("\\\n", " ").splitlines():
+    line = line.split(" #")[0]  # a shell comment names other programs' flags
     match = _SCRIPT.search(line)
     script = ROOT / "experiments" / f"{match.group(1)}.py" if match else None
     if script is None or not script.is_file():
@@ -216,6 +217,7 @@ def test_the_checker_finds_what_is_missing_and_accepts_what_exists():
   assert path_missing("configs/diffusion.py:tiny|demo") is None
   assert path_missing("runs/demo/diffusion") is None
   assert flags_missing("python experiments/train_diffusion.py --workdir=w --config.x=1") == []
+  assert flags_missing("experiments/evaluate.py --split=val  # mpirun --allow") == []
   assert flags_missing("experiments/evaluate.py --no_such_flag=1") == [
       "experiments/evaluate.py --no_such_flag"]
   assert code_texts("a `x.y` b\n```\nc d\n```\n") == ["c d\n", "x.y"]
