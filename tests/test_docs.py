@@ -198,6 +198,17 @@ def problems(document: str) -> list[str]:
   return sorted(set(out))
 
 
+_MACHINE_PATH = re.compile(r"(?<![\w.<>-])/(tmp|work|home|root|Users)/")
+
+
+def test_no_document_names_a_machine_or_temporary_path():
+  documents = [ROOT / d for d in DOCUMENTS] + sorted((ROOT / "docs").rglob("*.md"))
+  found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}" for p in dict.fromkeys(documents)
+           if p.is_file() for i, line in enumerate(p.read_text().splitlines(), 1)
+           if _MACHINE_PATH.search(line)]
+  assert not found, "machine paths (write them repository-relative):\n" + "\n".join(found)
+
+
 def test_the_checker_finds_what_is_missing_and_accepts_what_exists():
   assert dotted_name_missing("cvmdx_jax.multimodal.kmeans") is False
   assert dotted_name_missing("storage.identity.check") is False
@@ -221,6 +232,8 @@ def test_the_checker_finds_what_is_missing_and_accepts_what_exists():
   assert flags_missing("experiments/evaluate.py --no_such_flag=1") == [
       "experiments/evaluate.py --no_such_flag"]
   assert code_texts("a `x.y` b\n```\nc d\n```\n") == ["c d\n", "x.y"]
+  assert _MACHINE_PATH.search("see /tmp/x/run.log") and _MACHINE_PATH.search("(/work/a)")
+  assert not _MACHINE_PATH.search("<scratch>/tmp/x docs/tmp/x ../shared/x")
 
 
 @pytest.mark.parametrize("document", DOCUMENTS)
