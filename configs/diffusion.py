@@ -10,7 +10,8 @@ Presets after the path: `:tiny` (seconds, tests), `:demo` (the CPU default of th
 levels; batch 256, lr 2e-4, 2000 epochs: a GPU job), `:reference` (as paper, but with
 attention only in the middle block, which is what the official code's
 attention_resolutions="16,8" yields for length 125: its 22.5 M parameters).
-No preset: the paper model with a CPU-feasible epoch count. Any field can be
+No preset: the paper model with a CPU-feasible epoch count, sampled with DPM-Solver++(2M)
+in 3 steps (:paper and :reference: the paper's DDIM-10). Any field can be
 overridden: `--config.sampling.steps=20`, `--config.train.num_epochs=50`.
 """
 
@@ -80,16 +81,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   config.sampling = ml_collections.ConfigDict()
   config.sampling.num_samples = 9  # N samples per scenario (paper)
-  # "ddim", "ddpm" or "dpmpp2m" (DPM-Solver++(2M) over the same guided ODE, `steps`
-  # guided evaluations; beyond the paper). Default dpmpp2m with 3 steps: the fewest U-Net
-  # evaluations (6 per sample vs DDIM-10's 20) with mean and best-of-K ADE / FDE within 2 %
-  # of DDIM-10, chosen on val (BUILD_NOTES.md, "Sampler Pareto"); :paper and :reference
-  # keep the paper's DDIM-10 (--config.sampling.sampler=ddim --config.sampling.steps=10).
-  config.sampling.sampler = "dpmpp2m"
+  # "ddim" (S steps), "ddpm" (all T), "dpmpp2m" (DPM-Solver++(2M) over the same guided
+  # ODE, S guided evaluations; beyond the paper) or "distilled" (a distilled student's)
+  config.sampling.sampler = "ddim"  # paper
   # "paper" (the paper's equations) or "official" (the official code's guided DDIM loop:
   # steps - 1 updates, w from w_min to w_max_base by step index, no delta; README)
   config.sampling.mode = "paper"
-  config.sampling.steps = 3  # S DDIM / DPM-Solver++ steps (paper: DDIM 10)
+  config.sampling.steps = 10  # S DDIM / DPM-Solver++ steps (paper: DDIM 10)
   config.sampling.eta = 0.0  # DDIM noise
   config.sampling.clip_x0 = 1.0  # clip predicted x0 to [-1, 1] (official sampler); 0 = off
   # weights (keep lane, lcr, lcl) on an intent conditioning's class probabilities before
@@ -126,73 +124,33 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train.num_epochs = 1
     config.train.learning_rate = 1e-3
     config.train.checkpoint_every = 1
-  if arg.demo:
-    config.model.base_channels = 32
+  if arg.demo:  # every choice below was made on val: docs/results.md#demo-choices
+    config.model.base_channels = 32  # a U-Net that trains in minutes on 2 cores
     config.model.channel_mult = (1, 2, 2, 2)
     config.model.attention_levels = (3,)
     config.model.groups = 8
-    # batch 128: batches of 64 and 32 (2x and 4x the steps in about the same CPU time)
-    # lowered val mean ADE and minADE_K but raised Brier-minFDE and the NLL (sharper,
-    # over-confident samples); kept by the rule of issue 27 (the lowest val Brier-minFDE
-    # within 2 % of the mean ADE; BUILD_NOTES.md, "Smaller batches")
-    config.train.batch_size = 128
-    # 30 over the 12 train recordings of dataset `:small` (~1,700 steps, as 60 epochs over
-    # its former 6): `make demo` within 15 min on the slowest 2-core machine measured (more
-    # steps helped on val but took it to 21.6 min there; BUILD_NOTES.md)
-    config.train.num_epochs = 30
+    config.model.cond_hidden = (256, 256)  # docs/results.md#demo-choices, conditioning MLP
+    config.train.batch_size = 128  # docs/results.md#demo-choices, batch
+    config.train.num_epochs = 30  # docs/results.md#demo-choices, epochs (15 min budget)
     config.train.learning_rate = 1e-3
     config.train.warmup_steps = 200
     config.train.ema_decay = 0.999
-    # 0.1 rad/s per unit (clips the 0.1 % of SUMO steps above it): the small model's
-    # token-conditional mean was off by ~1 m laterally at 5 s with 0.7 (BUILD_NOTES.md)
-    config.diffusion.control_scale = (4.0, 0.1)
-    # no guidance (w = 0: the conditional denoiser alone): with the ego features and the
-    # intent as inputs the guidance hardly moves the samples; on val and val_ood the mean
-    # ADE without it is lower by 0.001-0.004 for each of three seeds, best of K and
-    # Brier-minFDE within 1 % (BUILD_NOTES.md, "Guidance strength with intent
-    # conditioning"; before the intent input half the paper's ceiling, 0.5, was chosen)
-    config.sampling.guidance.w_min = 0.0
+    config.diffusion.control_scale = (4.0, 0.1)  # docs/results.md#demo-choices, yaw scale
+    config.diffusion.conditioning = "ego_film_residual"  # docs/results.md#demo-choices
+    config.diffusion.intent_conditioning = True  # docs/results.md#demo-choices, intent
+    config.sampling.guidance.w_min = 0.0  # docs/results.md#demo-choices, guidance
     config.sampling.guidance.w_max_base = 0.0
-    # the denoiser also sees the ego's motion and its neighbours at t0 (beyond the paper):
-    # on val, mean-of-9 ADE 1.20 vs 1.46 token-only (DDIM-10) with the ego's own features;
-    # adding the neighbours' 1.17 -> 1.13 (dpmpp2m; BUILD_NOTES.md, "Prediction quality");
-    # and predicts the controls relative to the ego's current ones (residual_decay_s):
-    # val 0.789 vs 0.860 without, keep-lane 0.387 vs 0.484 (BUILD_NOTES.md, "Residual base")
-    config.diffusion.conditioning = "ego_film_residual"
-    # the ego features' MLP: two hidden layers of 256 (was one of 64, the embedding width):
-    # on val mean ADE 0.737 against 0.771, best of K 0.499 / 1.277 against 0.510 / 1.309, lane
-    # changes most (BUILD_NOTES.md, "The conditioning MLP")
-    config.model.cond_hidden = (256, 256)
-    # the maneuver class as an input, drawn per sample from an intent classifier trained
-    # beside the U-Net: on val best of K 0.442 / 1.128 against 0.488 / 1.250, Brier-minFDE
-    # 1.469 against 1.599 at the same mean ADE (0.728); then balanced class weights (the
-    # keep-lane weight 2 of 2026-12-02 set the share of lane changes in the samples, which
-    # the classifier now does): Brier-minFDE 1.443, best of K 0.438 / 1.115, keep-lane mean
-    # 0.490 against 0.453 (BUILD_NOTES.md, "Intent conditioning", "Balanced class weights")
-    config.diffusion.intent_conditioning = True
-    # keep-lane weight 2 on the classifier's probabilities at sampling: the most of the
-    # issue-27 mean margins on val and val_ood over three seeds (124 of 144 against 118 for
-    # 1 and 119 for 4), at val Brier-minFDE 1.469 against 1.460 (BUILD_NOTES.md, "A class
-    # prior for the intent draws")
-    config.sampling.intent_prior = (2.0, 1.0, 1.0)
-    # hypotheses for coverage: k-means with K = 3 over 36 samples, half the distance weight
-    # on the 5 s position; on val (epoch-10 snapshot of the demo model) Brier-minFDE 1.93 /
-    # minFDE_3 1.56 against 2.27 / 2.20 for BIC over 9 samples, mean ADE 0.85 against 0.88;
-    # the lowest Brier-minFDE among N whose make-demo time stays within 15 min even if the
-    # whole evaluation grew with N (64: 1.90, ruled out by that bound; BUILD_NOTES.md,
-    # "Hypotheses for coverage")
-    # 64 samples (was 36, chosen with 6 U-Net evaluations a sample): with the distilled
-    # student of `make demo` (2 evaluations a sample) 64 cost 128 evaluations a scenario,
-    # against DDIM-10's 720 for 36, at val mean ADE, minFDE_K and Brier-minFDE within 2 % of
-    # DDIM-10's (BUILD_NOTES.md, "Distilled sampler")
-    config.sampling.num_samples = 64
+    config.sampling.intent_prior = (2.0, 1.0, 1.0)  # docs/results.md#demo-choices, prior
+    config.sampling.num_samples = 64  # docs/results.md#demo-choices, hypotheses
     config.sampling.hypotheses.method = "kmeans"
     config.sampling.hypotheses.endpoint_weight = 0.5
   if arg.paper or arg.reference:
     config.train.num_epochs = 2000
     config.train.checkpoint_every = 50
-    config.sampling.sampler = "ddim"  # the paper's sampler
-    config.sampling.steps = 10
+  else:  # the fewest U-Net evaluations within 2 % of DDIM-10 on val:
+    # docs/results.md#samplers-u-net-evaluations-against-accuracy
+    config.sampling.sampler = "dpmpp2m"
+    config.sampling.steps = 3
   if arg.reference:
     config.model.attention_levels = ()
   return config

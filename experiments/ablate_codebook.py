@@ -46,7 +46,7 @@ def run_one(root: Path, data_dir: str, quantizer: str, q: int) -> dict:
   run = root / f"{quantizer}_q{q}"
   tok = tokenizer_config.get_config(_TOK.value)
   tok.data_dir, tok.quantizer.codebook_size, tok.quantizer.kind = data_dir, q, quantizer
-  tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok), run / "tokenizer")
+  tokenizer_train.train(TokenizerRunConfig.from_config(tok), run / "tokenizer")
   diff = diffusion_config.get_config(_DIFF.value)
   diff.data_dir, diff.tokenizer_dir = data_dir, str(run / "tokenizer")
   diffusion_train.train(DiffusionRunConfig.from_config(diff), run / "diffusion")

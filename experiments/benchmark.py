@@ -45,15 +45,16 @@ from pathlib import Path
 from absl import flags
 import jax
 import jax.numpy as jnp
+import ml_collections
 
 from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from cvmdx_jax import cli, diffusion, ego_motion, host_allocator
-from cvmdx_jax.config.denoiser import DenoiserConfig
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
 from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import sampling as sampling_lib
+from cvmdx_jax.inference.bundles import Denoiser
 from cvmdx_jax.models import performance, unet1d
 from cvmdx_jax.models.performance import PerformanceOptions
 from cvmdx_jax.storage import atomic
@@ -120,20 +121,26 @@ def forward_flops(graphdef, params, cond_dim: int, batch: int = 1) -> float:
   return float(cost["flops"])
 
 
-def predict_calls(graphdef, params, b: int, config: SamplingConfig, repeats: int,
-                  num_tokens: int = NUM_TOKENS, warmup: int = 1,
-                  denoiser_config: DenoiserConfig = DenoiserConfig()) -> tuple[float, float]:
-  """`time_calls` of one jitted `predict_batch` call for `b` scenarios: (first, median) s;
-  `params` prepared for inference first, untimed, as `Predictor` does on construction
-  (`unet1d.prepare_params`)."""
-  params = unet1d.prepare_params(graphdef, params)
+def predict_calls(denoiser: Denoiser, b: int, config: SamplingConfig, repeats: int,
+                  warmup: int = 1) -> tuple[float, float]:
+  """`time_calls` of one jitted `predict_batch` call of `denoiser` for `b` scenarios:
+  (first, median) s; its parameters prepared for inference first, untimed, as `Predictor`
+  does on construction (`unet1d.prepare_params`)."""
+  denoiser = dataclasses.replace(denoiser, params=unet1d.prepare_params(denoiser.graphdef,
+                                                                          denoiser.params))
   keys = jax.random.split(jax.random.key(0), b)
   schedule = diffusion.cosine_schedule()
   call = lambda: _predict_batch(
-      graphdef, params, jnp.arange(b) % num_tokens, jnp.full(b, 5.0), jnp.full(b, 30.0),
+      denoiser, jnp.arange(b) % denoiser.null_token, jnp.full(b, 5.0), jnp.full(b, 30.0),
       jnp.zeros(b), keys, jnp.zeros((b, ego_motion.NUM_FEATURES)), schedule=schedule,
-      null_token=num_tokens, config=config, denoiser_config=denoiser_config)
+      config=config)
   return time_calls(call, repeats, warmup)
+
+
+def bundle(config: DiffusionRunConfig, key=None) -> Denoiser:
+  """A `Denoiser` of `config` (sized for its tokens) with fresh parameters of `key`."""
+  graphdef, params = unet1d.init_unet(config.model, jax.random.key(0) if key is None else key)
+  return Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
 
 
 def predict_timing(*args, **kwargs) -> float:
@@ -205,9 +212,9 @@ def reference_timings(config: DiffusionRunConfig, num_tokens: int,
   """
   config = config.with_tokens(num_tokens)
   sampled = sampled_config(config, sampling)
-  graphdef, params = unet1d.init_unet(sampled.model, jax.random.key(0))
-  timed = lambda b, key: predict_calls(graphdef, params, b, sampling, repeats[key][1],
-                                       num_tokens, repeats[key][0], sampled.diffusion)
+  denoiser = bundle(sampled)
+  params = denoiser.params
+  timed = lambda b, key: predict_calls(denoiser, b, sampling, repeats[key][1], repeats[key][0])
   train_warmup, train_repeats = repeats["train"]
   first, b1 = timed(1, "b1")
   return {"params": unet1d.count_params(params), "sampler": sampling.sampler,
@@ -330,7 +337,7 @@ def default_main():
                             ("reference size (:paper)", "paper", _REF_BATCH.value)):
     config = DiffusionRunConfig.from_config(diffusion_config.get_config(preset)).with_tokens(
         NUM_TOKENS)
-    cfg, targets = config.model, config.diffusion
+    cfg = config.model
     ddim = SamplingConfig()
     fast = default_sampling(ddim)
     graphdef, params = unet1d.init_unet(cfg, jax.random.key(0))
@@ -339,20 +346,19 @@ def default_main():
     print(f"\n== {name}: {unet1d.count_params(params) / 1e6:.2f} M parameters, "
           f"{gflop:.3f} GFLOP per sample forward, {per_scenario:.1f} GFLOP per scenario "
           f"(9 samples x 10 steps x 2 for CFG)")
+    teacher = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
     student = sampled_config(config, fast)
-    fast_net = (graphdef, params) if student is config else unet1d.init_unet(
-        student.model, jax.random.key(0))
-    for sampling, label, gflop, (g, p), d in (
-        (ddim, "", per_scenario, (graphdef, params), targets),
-        (fast, f" {fast.sampler}({fast.steps})", None, fast_net, student.diffusion)):
-      first, sec = predict_calls(g, p, 1, sampling, _REPEATS.value, denoiser_config=d)
+    fast_net = teacher if student is config else bundle(student)
+    for sampling, label, gflop, denoiser in (
+        (ddim, "", per_scenario, teacher),
+        (fast, f" {fast.sampler}({fast.steps})", None, fast_net)):
+      first, sec = predict_calls(denoiser, 1, sampling, _REPEATS.value)
       print(predict_line(label, 1, sec, gflop, first))
-      sec = predict_timing(g, p, big, sampling, _REPEATS.value, denoiser_config=d)
+      sec = predict_timing(denoiser, big, sampling, _REPEATS.value)
       print(predict_line(label, big, sec, gflop))
     ddpm = dataclasses.replace(ddim, sampler="ddpm")
-    t_ddim, t_ddpm = (predict_timing(graphdef, params, 1, s, 1, denoiser_config=targets)
-                      for s in (ddim, ddpm))
-    t_fast = predict_timing(*fast_net, 1, fast, 1, denoiser_config=student.diffusion)
+    t_ddim, t_ddpm = (predict_timing(teacher, 1, s, 1) for s in (ddim, ddpm))
+    t_fast = predict_timing(fast_net, 1, fast, 1)
     print(f"DDPM(1000) {t_ddpm:.2f} s vs DDIM(10) {t_ddim:.3f} s per scenario (9 samples): "
           f"{t_ddpm / t_ddim:.1f}x")
     print(f"DDPM(1000) {t_ddpm:.2f} s vs default {fast.sampler}({fast.steps}) {t_fast:.3f} s "

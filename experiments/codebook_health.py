@@ -75,7 +75,7 @@ def main(argv):
       run = config.copy_and_resolve_references()
       run.quantizer.codebook_size, run.quantizer.kind = q, kind
       run_dir = workdir / f"{kind}_q{q}"
-      tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(run), run_dir)
+      tokenizer.train(TokenizerRunConfig.from_config(run), run_dir)
       rows.append(_row(run_dir, q, kind, splits))
       logging.info("%s", rows[-1])
   table = "\n".join(rows) + "\n"

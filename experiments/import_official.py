@@ -18,7 +18,6 @@ refused, and it gets config.json last: a run with config.json is complete.
 
 import dataclasses
 import shutil
-import tempfile
 from pathlib import Path
 
 from absl import flags
@@ -30,14 +29,16 @@ from cvmdx_jax import cli
 from cvmdx_jax.config.denoiser import PAPER_SCALE
 from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.errors import UserError
+from cvmdx_jax.inference.bundles import load_tokenizer
 from cvmdx_jax.models import official_import
-from cvmdx_jax.runs import fingerprints, layout, loaders
+from cvmdx_jax.models.official_state import NumHeadsError, OFFICIAL_NUM_HEADS
+from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.storage import checkpointing, checksums, locking
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
 _KEY = flags.DEFINE_string("key", None, "Entry of a dict holding several state dicts.")
-_NUM_HEADS = flags.DEFINE_integer("num_heads", official_import.OFFICIAL_NUM_HEADS,
+_NUM_HEADS = flags.DEFINE_integer("num_heads", OFFICIAL_NUM_HEADS,
                                   "Attention heads of the official model (not stored in it).",
                                   lower_bound=1)
 _TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
@@ -45,45 +46,37 @@ _TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
 flags.mark_flags_as_required(["checkpoint", "workdir"])
 cli.input_dirs("tokenizer_dir")
 cli.output_dirs("workdir")
-_TMP_PREFIX = ".import."  # the run is written into <workdir>/.import.*, then moved in
 
 
 def write_run(workdir: Path, config: DiffusionRunConfig, params, fingerprint: dict) -> None:
-  """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: config.json
-  and checkpoints/1 holding {params, ema_params} (both the imported weights) and step 0,
-  with metadata {"fingerprint": fingerprint}."""
-  layout.write_run_config(workdir, config)
+  """Writes a diffusion run directory in the `cvmdx_jax.runs.layout` format: checkpoints/1
+  holding {params, ema_params} (both the imported weights) and step 0, with metadata
+  {"fingerprint": fingerprint}, then config.json (`storage.checksums`): a directory is a run
+  once its config.json is there (`inference.bundles.load_denoiser` refuses it before)."""
   state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
            "step": jnp.zeros((), jnp.int32)}
   with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=1) as ckpts:
     ckpts.save(1, state, {"fingerprint": fingerprint})
+  layout.write_run_config(workdir, config)
 
 
 def _write_once(workdir: Path, config: DiffusionRunConfig, params, fingerprint: dict) -> None:
-  """`write_run` into a new or empty `workdir`, held, via a temporary directory inside
-  it; on failure nothing but the lock file is left. A `.import.*` directory left by an
-  import that was killed is removed first (the lock says no import is running)."""
+  """`write_run` into a new or empty `workdir`, held; on failure the checkpoints are removed
+  again. Checkpoints without a config.json are an import that was killed (the lock says
+  none is running): removed first."""
+  checkpoints = workdir / layout.CHECKPOINTS
   with locking.hold(workdir):
-    for stale in workdir.glob(f"{_TMP_PREFIX}*"):
-      shutil.rmtree(stale)
+    if checkpoints.is_dir() and not (workdir / layout.CONFIG_JSON).exists():
+      shutil.rmtree(checkpoints)
     found = sorted(p.name for p in workdir.iterdir() if not p.name.startswith(locking.LOCK_NAME))
     if found:
       raise UserError(f"--workdir={workdir} exists and holds {found[:4]}; give a new directory")
-    tmp = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=workdir))
-    moved = []
     try:
-      write_run(tmp, config, params, fingerprint)
-      for entry in sorted(tmp.iterdir(), key=lambda p: p.name == layout.CONFIG_JSON):
-        entry.rename(workdir / entry.name)  # config.json last
-        moved.append(workdir / entry.name)
+      write_run(workdir, config, params, fingerprint)
     except BaseException:
-      for path in moved:
-        if path.is_dir():
-          shutil.rmtree(path)
-        path.unlink(missing_ok=True)
+      if not (workdir / layout.CONFIG_JSON).exists():
+        shutil.rmtree(checkpoints, ignore_errors=True)
       raise
-    finally:
-      shutil.rmtree(tmp)
 
 
 def main(argv):
@@ -94,13 +87,13 @@ def main(argv):
   try:
     cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
                                                 num_heads=_NUM_HEADS.value)
-  except official_import.NumHeadsError as e:
+  except NumHeadsError as e:
     raise UserError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
   config = diffusion_configs.get_config("reference")
   config.tokenizer_dir = ""  # none paired
   if _TOKENIZER_DIR.value:
-    bundle = loaders.load_tokenizer(_TOKENIZER_DIR.value)
+    bundle = load_tokenizer(_TOKENIZER_DIR.value)
     if bundle.config.quantizer.codebook_size != cfg.num_tokens:
       raise UserError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
                        f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "

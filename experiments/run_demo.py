@@ -95,7 +95,7 @@ def main(argv):
   _stage(f"2/5 CVQ-VAE tokeniser (preset {_TOKENIZER.value}) -> {tok_dir}", start)
   tok_cfg = tokenizer_config.get_config(_TOKENIZER.value)
   tok_cfg.data_dir, tok_cfg.seed = str(data_dir), _SEED.value
-  tokenizer_train.train_and_evaluate(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
+  tokenizer_train.train(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
   _stage(f"3/5 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
   diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
@@ -135,7 +135,8 @@ def main(argv):
                                        data_dir=data_dir, workdir=root,
                                        ddpm_scenarios=_DDPM.value,
                                        ood_ddpm_scenarios=_OOD_DDPM.value,
-                                       baseline_dir=base_dir, ddpm_diffusion_dir=diff_dir):
+                                       baseline_dir=base_dir, mdn_dir=mdn_dir,
+                                       ddpm_diffusion_dir=diff_dir):
     suffix = report.split_suffix(split)
     files += [f"{root}/metrics{suffix}.json", f"{root}/results{suffix}.md"]
     print(f"\n{split}:\n" + (root / f"results{suffix}.md").read_text())

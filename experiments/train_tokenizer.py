@@ -28,7 +28,7 @@ def main(argv):
     raise app.UsageError(f"Too many command-line arguments: {argv[1:]}")
   sharding.initialize_distributed()
   logging.info("devices: %s", jax.devices())
-  tokenizer.train_and_evaluate(_RUN.value, _WORKDIR.value)
+  tokenizer.train(_RUN.value, _WORKDIR.value)
   logging.info("tokens written to %s/tokens", _WORKDIR.value)
 
 

@@ -66,3 +66,43 @@ def test_no_import_cycles_and_at_most_ten_top_level_modules():
   top = sorted(p.name for p in (REPO / "cvmdx_jax").glob("*.py"))
   assert len(top) <= 10, top
   assert "cvmdx_jax.runs.loaders" in graph and "cvmdx_jax.storage.identity" in graph
+
+
+def _package_of(module: str) -> str:
+  """cvmdx_jax.runs.layout -> runs; a top-level module is its own package."""
+  return module.split(".")[1]
+
+
+def test_no_package_imports_one_that_imports_it_back():
+  """The packages form layers: no import runs back up, so no two packages import each
+  other, directly or round a longer loop. A failure names the module-level imports that
+  close each loop."""
+  modules = _package_imports()
+  graph = {}
+  for name, deps in modules.items():
+    for dep in deps:
+      if _package_of(dep) != _package_of(name):
+        graph.setdefault(_package_of(name), set()).add(_package_of(dep))
+
+  def reachable(start):
+    seen, todo = set(), [start]
+    while todo:
+      for nxt in graph.get(todo.pop(), ()):
+        if nxt not in seen:
+          seen.add(nxt)
+          todo.append(nxt)
+    return seen
+
+  loops = sorted(f"{name} -> {dep}" for name, deps in modules.items() for dep in deps
+                 if _package_of(dep) != _package_of(name)
+                 and _package_of(name) in reachable(_package_of(dep)))
+  assert loops == []
+
+
+def test_the_configs_sit_below_every_package_that_uses_them():
+  """cvmdx_jax.config imports only the constants, the ego-motion features and the error
+  base class, so models, samplers, trainers and loaders can all import their configs."""
+  graph = _package_imports()
+  used = {dep for name, deps in graph.items() if name.startswith("cvmdx_jax.config.")
+          for dep in deps if not dep.startswith("cvmdx_jax.config")}
+  assert used <= {"cvmdx_jax.constants", "cvmdx_jax.ego_motion", "cvmdx_jax.errors"}, used

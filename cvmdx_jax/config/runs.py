@@ -19,7 +19,8 @@ from cvmdx_jax.config.fields import NON_NEGATIVE, POSITIVE, Range, SEED, check_r
 from cvmdx_jax.config.models import (EncoderConfig, MultipleChoiceConfig, QuantizerConfig,
                                      TokenizerConfig, UNetConfig)
 from cvmdx_jax.config.sampling import SamplingConfig
-from cvmdx_jax.config.train import BaselineTrainConfig, DiffusionTrainConfig, TokenizerTrainConfig
+from cvmdx_jax.config.train import (BaselineTrainConfig, DiffusionTrainConfig,
+                                    DistillTrainConfig, TokenizerTrainConfig)
 from cvmdx_jax.errors import UserError
 
 
@@ -150,17 +151,17 @@ class DistillRunConfig:
       in one run) instead of the guided v at every t.
     teacher_substeps: k, the teacher's DDIM steps per student step of a progressive stage
       (2: Salimans & Ho's halving; a progressive teacher must sample k S steps).
-    train: `DiffusionTrainConfig` (AdamW, EMA, epochs over the train split).
+    train: `DistillTrainConfig` (AdamW, EMA, epochs over the train split).
   """
 
   teacher_dir: str = "runs/diffusion"
   data_dir: str = ""
   tokenizer_dir: str = ""
   seed: int = 0
-  steps: int = 2
+  steps: int = 4
   guided_progressive: bool = False
   teacher_substeps: int = 2
-  train: DiffusionTrainConfig = DiffusionTrainConfig()
+  train: DistillTrainConfig = DistillTrainConfig()
 
   def __post_init__(self):
     _check_run(self)

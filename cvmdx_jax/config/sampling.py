@@ -5,6 +5,7 @@ import dataclasses
 from typing import ClassVar
 
 from cvmdx_jax import constants
+from cvmdx_jax.config.denoiser import DenoiserConfig
 from cvmdx_jax.config.fields import ConfigFieldError, FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
 from cvmdx_jax.errors import UserError
 
@@ -159,12 +160,22 @@ class SamplingConfig:
                        f"'ddim'), got {self.mode!r} with {self.sampler!r}")
 
 
-def check_sampler(config: SamplingConfig, guidance_input: bool) -> None:
-  """ValueError where `config` cannot sample the denoiser: the official mode needs the
-  guided pair, the distilled sampler a guidance student."""
-  if guidance_input and config.mode == "official":
+def check_sampling(config: SamplingConfig, denoiser: DenoiserConfig) -> None:
+  """The one check that `config` can sample a denoiser of `denoiser`: the official mode
+  needs the guided pair (no guidance student), the distilled sampler a guidance student,
+  an intent prior other than 1 a denoiser that draws maneuver classes.
+
+  Raises:
+    UserError: the mode or sampler does not fit the denoiser.
+    ConfigFieldError: sampling.intent_prior set for a denoiser without intent conditioning.
+  """
+  if denoiser.guidance_input and config.mode == "official":
     raise UserError("sampling.mode 'official' runs the guided pair; a distilled denoiser "
-                     "(guidance_input) has none: use mode 'paper'")
-  if config.sampler == "distilled" and not guidance_input:
+                    "(guidance_input) has none: use mode 'paper'")
+  if config.sampler == "distilled" and not denoiser.guidance_input:
     raise UserError("sampling.sampler 'distilled' needs a distilled denoiser "
-                     "(experiments/distill.py); this one is not")
+                    "(experiments/distill.py); this one is not")
+  if not denoiser.intent_conditioning and any(w != 1 for w in config.intent_prior):
+    raise ConfigFieldError("sampling.intent_prior", config.intent_prior,
+                           "this denoiser draws no maneuver classes (it was trained without "
+                           "diffusion.intent_conditioning): leave it at 1, 1, 1")

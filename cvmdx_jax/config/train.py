@@ -35,10 +35,12 @@ class TokenizerTrainConfig(BaseTrainConfig):
 
 @dataclasses.dataclass(frozen=True)
 class DiffusionTrainConfig(BaseTrainConfig):
-  """The `train` section of the denoiser: `BaseTrainConfig` plus the AdamW schedule and the EMA
-  (configs/diffusion.py documents the fields)."""
+  """The `train` section of the denoiser: `BaseTrainConfig` plus the AdamW schedule and the
+  EMA (configs/diffusion.py documents the fields); batch and peak learning rate the
+  paper's."""
 
   batch_size: int = 256
+  learning_rate: float = 2e-4
   warmup_steps: int = 3000
   min_lr: float = 1e-6
   weight_decay: float = 0.0
@@ -47,6 +49,17 @@ class DiffusionTrainConfig(BaseTrainConfig):
   RANGES: ClassVar = {**BaseTrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
                       "min_lr": NON_NEGATIVE, "weight_decay": NON_NEGATIVE,
                       "ema_decay": BELOW_ONE}
+
+
+@dataclasses.dataclass(frozen=True)
+class DistillTrainConfig(DiffusionTrainConfig):
+  """The `train` section of a distillation stage: `DiffusionTrainConfig` with a shorter,
+  gentler schedule from a trained teacher (configs/distill.py documents the fields)."""
+
+  num_epochs: int = 20
+  learning_rate: float = 1e-4
+  warmup_steps: int = 100
+  ema_decay: float = 0.999
 
 
 # val read-outs of the baseline's `train.baseline.evaluate` the epoch can be chosen on

@@ -75,6 +75,16 @@ def read_metadata(cache_dir) -> dict | None:
   return metadata if _well_formed(metadata) else None
 
 
+def required_metadata(cache_dir) -> dict:
+  """The metadata of the cache in `cache_dir`; DataError naming its metadata.json where
+  there is none (or a malformed or older one)."""
+  metadata = read_metadata(cache_dir)
+  if metadata is None:
+    raise DataError(Path(cache_dir) / METADATA, "no dataset cache here, or a malformed or "
+                    "older one (run make_dataset)")
+  return metadata
+
+
 def matches(metadata: dict | None, settings: dict, sources: list) -> bool:
   """True when `metadata` was made with these settings from these source files."""
   return metadata is not None and not identity.differing_keys(
@@ -92,11 +102,7 @@ def dataset_id(metadata: dict) -> str:
 def read_split(cache_dir, split: str) -> scenarios_lib.Scenarios:
   """Reads split `split`; raises DataError if absent, unknown or inconsistent."""
   cache_dir = Path(cache_dir)
-  metadata = read_metadata(cache_dir)
-  if metadata is None:
-    raise DataError(cache_dir / METADATA, "no dataset cache here, or a malformed or older "
-                    "one (run make_dataset)")
-  entries = metadata["splits"]
+  entries = required_metadata(cache_dir)["splits"]
   if split not in entries:
     raise DataError(cache_dir / METADATA, f"unknown split '{split}', available: "
                     f"{sorted(entries)}", column="split")

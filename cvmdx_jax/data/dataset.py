@@ -196,18 +196,10 @@ def load_split(data_dir, split: str):
 
 def dataset_id(data_dir) -> str:
   """12 hex digits: content hash of the cached dataset's settings and sources (`cache`)."""
-  metadata = cache.read_metadata(Path(data_dir) / "cache")
-  if metadata is None:
-    raise DataError(Path(data_dir) / "cache" / cache.METADATA,
-                    "no dataset cache here, or a malformed or older one (run make_dataset)")
-  return cache.dataset_id(metadata)
+  return cache.dataset_id(cache.required_metadata(Path(data_dir) / "cache"))
 
 
 def split_names(data_dir) -> list:
   """Names of the cached splits in `data_dir`, in `SPLITS` order (others after, sorted)."""
-  metadata = cache.read_metadata(Path(data_dir) / "cache")
-  if metadata is None:
-    raise DataError(Path(data_dir) / "cache" / cache.METADATA,
-                    "no dataset cache here, or a malformed or older one (run make_dataset)")
-  names = metadata.get("splits", {})
+  names = cache.required_metadata(Path(data_dir) / "cache").get("splits", {})
   return [s for s in SPLITS if s in names] + sorted(set(names) - set(SPLITS))

@@ -47,9 +47,3 @@ def eps_from_x0(x_t, x0, abar):
   """eps = (x_t - alpha x0) / sigma."""
   alpha, sigma = _coefs(abar, x_t)
   return (x_t - alpha * x0) / sigma
-
-
-def x0_from_eps(x_t, eps, abar):
-  """x0 = (x_t - sigma eps) / alpha; unstable where alpha -> 0 (t near T)."""
-  alpha, sigma = _coefs(abar, x_t)
-  return (x_t - sigma * eps) / alpha

@@ -1,7 +1,7 @@
 """The learned baseline in a report: the tokeniser check and the per-scenario errors.
 
 A baseline run (`cvmdx_jax.train.baseline`; files in `runs.layout`) is loaded with
-`runs.loaders.load_baseline`. Rows of a report (`METHODS`): the most likely head (argmax
+`inference.bundles.load_baseline`. Rows of a report (`METHODS`): the most likely head (argmax
 p), the probability-weighted mean of the K heads and the best of K (minADE_K / minFDE_K,
 Brier-minFDE, ... as for cVMDx's hypotheses).
 """
@@ -9,14 +9,15 @@ Brier-minFDE, ... as for cVMDx's hypotheses).
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import metrics, scoring
-from cvmdx_jax.runs.loaders import LearnedBaseline, TokenizerBundle
+from cvmdx_jax.inference.bundles import LearnedBaseline, TokenizerBundle
 from cvmdx_jax.storage import identity
 
 METHODS = ("mlp_most_likely", "mlp_mean", "mlp_best_of_k")
 
 
-class IncompatibleBaselineError(ValueError):
+class IncompatibleBaselineError(UserError):
   """The baseline was trained on tokens of another tokeniser than the one evaluated."""
 
 

@@ -1,1 +1,2 @@
-"""The inference path: sampling (`sampling`) and the trained-model entry point (`predictor`)."""
+"""The inference path: the trained-model bundles (`bundles`), sampling (`sampling`) and the
+trained-model entry point (`predictor`)."""

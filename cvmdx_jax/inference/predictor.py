@@ -34,18 +34,20 @@ import numpy as np
 from tqdm import tqdm
 
 from cvmdx_jax import ego_motion, sharding
-from cvmdx_jax.config.sampling import SamplingConfig, check_sampler
+from cvmdx_jax.config.sampling import SamplingConfig, check_sampling
 from cvmdx_jax.data import highd
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.diffusion import cosine_schedule
+from cvmdx_jax.errors import UserError
+from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle, load_denoiser, load_tokenizer
+from cvmdx_jax.inference.observations import Observations
 from cvmdx_jax.inference.sampling import Prediction, predict_batch
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.runs import loaders
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import identity
 
 
-class IncompatibleRunsError(ValueError):
+class IncompatibleRunsError(UserError):
   """The tokeniser and the denoiser were not trained together."""
 
 
@@ -84,20 +86,20 @@ def check_inputs(scenarios: Scenarios, seed) -> None:
       the model never saw them); names the first such scenario.
   """
   if not isinstance(seed, (int, np.integer)) or isinstance(seed, (bool, np.bool_)):
-    raise ValueError(f"seed={seed!r}: expected an int in [0, 2**32)")
+    raise UserError(f"seed={seed!r}: expected an int in [0, 2**32)")
   if not 0 <= seed < 2**32:
-    raise ValueError(f"seed={seed}: must be in [0, 2**32)")
+    raise UserError(f"seed={seed}: must be in [0, 2**32)")
   scenarios.validate(fields=INPUT_FIELDS, dtypes=False, allow_empty=False)
   mask, v0, psi0 = (np.asarray(scenarios.mask), np.asarray(scenarios.v0, np.float64),
                     np.asarray(scenarios.psi0, np.float64))
   if not mask[:, 0, -1].all():
-    raise ValueError(f"scenarios: field 'mask' marks the ego absent at t0 (mask[i, 0, -1]), "
+    raise UserError(f"scenarios: field 'mask' marks the ego absent at t0 (mask[i, 0, -1]), "
                      f"scenario {_first(~mask[:, 0, -1])}")
   for name, value, bad, bound in (("psi0", psi0, np.abs(psi0) > _PI32, "|psi0| <= pi rad"),
                                   ("v0", v0, v0 > MAX_V0, f"v0 <= {MAX_V0:.4g} m/s")):
     if bad.any():
       i = _first(bad)
-      raise ValueError(f"scenarios: field '{name}' = {value[i]:.6g} (scenario {i}) outside the "
+      raise UserError(f"scenarios: field '{name}' = {value[i]:.6g} (scenario {i}) outside the "
                        f"highD reader's range, {bound}")
   vx, vy = v0 * np.cos(psi0), v0 * np.sin(psi0)
   odd = (vx < _VX[0]) | (np.abs(vy) > _VY)
@@ -135,38 +137,55 @@ class PredictorOutput:
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def _predict(tokenizer: loaders.TokenizerBundle, denoiser: loaders.Denoiser, xi, mask, v0, psi0,
+def _predict(tokenizer: TokenizerBundle, denoiser: Denoiser, xi, mask, v0, psi0,
              keys, schedule, *, config: SamplingConfig):
   q, _, delta = tokenizer.tokenize(xi, mask)
-  targets = denoiser.config.diffusion
-  ego = None if targets.conditioning == "token" else ego_motion.ego_features(xi, mask)
-  pred = predict_batch(denoiser.graphdef, denoiser.params, q, delta, v0, psi0, keys, ego,
-                       schedule=schedule, null_token=denoiser.null_token, config=config,
-                       denoiser_config=targets)
+  conditioning = denoiser.config.diffusion.conditioning
+  ego = None if conditioning == "token" else ego_motion.ego_features(xi, mask)
+  pred = predict_batch(denoiser, q, delta, v0, psi0, keys, ego, schedule=schedule,
+                       config=config)
   return pred, q, delta
+
+
+def _fold_ids(key, ids):
+  """fold_in of `key` with each of `ids` (K,) in turn."""
+  for k in range(ids.shape[0]):
+    key = jax.random.fold_in(key, ids[k])
+  return key
 
 
 @dataclasses.dataclass(frozen=True)
 class Predictor:
   """Trained cVMDx: tokeniser bundle + denoiser + sampling settings.
 
+  What `load` has read stays here, so that nothing needs reading twice:
+    tokenizer: the `TokenizerBundle` (parameters, per-entry Gaussians of delta in
+      `tokenizer.gaussians`, model config, fingerprint, checkpoint {fingerprint, step,
+      params_id}).
+    denoiser: the `Denoiser` (EMA parameters, its `DiffusionRunConfig` in
+      `denoiser.config`, fingerprint).
+    sampling: the `SamplingConfig` used (default: the diffusion run's).
+    train_tokens: the tokeniser's train-split `runs.tokens.Tokens` (q, z_hat, delta; None
+      for a `Predictor` built from bundles).
+    delta_limit: the largest delta over the train split; scenarios above it are out of
+      distribution (the default, inf, flags none).
+
   On construction the denoiser's parameters are prepared for inference
   (`unet1d.prepare_params`: the Winograd kernels transformed once, not in every call; the
   same predictions bit for bit) and the tokeniser's and the denoiser's arrays are replicated
   over the devices of `sharding.data_mesh()` (once; `dataclasses.replace` keeps them there).
-  `delta_limit`: the largest delta over the tokeniser's train split (`load` reads it from
-  `<tokenizer_dir>/tokens/train.npz`); scenarios above it are out of distribution (the
-  default, inf, flags none).
+  The sampling settings are checked against the denoiser (`config.sampling.check_sampling`).
   """
 
-  tokenizer: loaders.TokenizerBundle
-  denoiser: loaders.Denoiser
+  tokenizer: TokenizerBundle
+  denoiser: Denoiser
   sampling: SamplingConfig
   chunk_size: int = 256
   delta_limit: float = math.inf
+  train_tokens: tokens_lib.Tokens | None = None
 
   def __post_init__(self):
-    check_sampler(self.sampling, self.denoiser.config.diffusion.guidance_input)
+    check_sampling(self.sampling, self.denoiser.config.diffusion)
     mesh = sharding.data_mesh()
     denoiser = dataclasses.replace(self.denoiser, params=unet1d.prepare_params(
         self.denoiser.graphdef, self.denoiser.params))
@@ -189,19 +208,32 @@ class Predictor:
       IncompatibleRunsError: the denoiser was trained on tokens of another tokeniser
         checkpoint (the message names the differing keys).
     """
-    bundle = loaders.load_tokenizer(tokenizer_dir)
-    denoiser = loaders.load_denoiser(diffusion_dir)
+    bundle = load_tokenizer(tokenizer_dir)
+    denoiser = load_denoiser(diffusion_dir)
     identity.check(denoiser.fingerprint.to_dict()["tokenizer"], bundle.checkpoint.to_dict(),
                    f"denoiser {diffusion_dir} (not trained on tokens of tokeniser "
                    f"{tokenizer_dir})", IncompatibleRunsError)
     sampling = sampling or denoiser.config.sampling
     train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
     return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size,
-               delta_limit=float(np.max(train.delta)))
+               delta_limit=float(np.max(train.delta)), train_tokens=train)
 
-  def __call__(self, scenarios: Scenarios, seed: int = 0) -> PredictorOutput:
-    """Predicts every scenario; see the module docstring; inputs as `check_inputs`."""
+  def __call__(self, scenarios: Scenarios | Observations, seed: int = 0,
+               noise_ids=None) -> PredictorOutput:
+    """Predicts every scenario; see the module docstring; inputs as `check_inputs`.
+
+    `scenarios`: `Scenarios` or `Observations` (what is known at t0: fields xi, mask, v0,
+    psi0). `noise_ids`: (M, K) ints in [0, 2**32); scenario i draws from fold_in(...
+    fold_in(key(seed), noise_ids[i, 0]) ..., noise_ids[i, K - 1]); None = (i,), the
+    module docstring's. (frame, track_id) makes a vehicle's draw at a frame independent
+    of the other vehicles and frames predicted with it (`inference.stream`).
+    """
     check_inputs(scenarios, seed)
+    ids = np.arange(len(scenarios))[:, None] if noise_ids is None else np.asarray(noise_ids)
+    if ids.ndim != 2 or len(ids) != len(scenarios) or np.any((ids < 0) | (ids >= 2**32)):
+      raise ValueError(f"noise_ids: expected (M, K) ints in [0, 2**32) with M = "
+                       f"{len(scenarios)}, got shape {ids.shape}")
+    ids = ids.astype(np.uint32)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
     m = len(scenarios)
@@ -214,9 +246,9 @@ class Predictor:
       inputs = {"xi": np.asarray(scenarios.xi[idx], np.float32),
                 "mask": np.asarray(scenarios.mask[idx], bool),
                 "v0": np.asarray(scenarios.v0[idx], np.float32),
-                "psi0": np.asarray(scenarios.psi0[idx], np.float32), "index": idx}
+                "psi0": np.asarray(scenarios.psi0[idx], np.float32), "index": ids[idx]}
       padded, weight = sharding.pad_batch(inputs, chunk)
-      keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.asarray(padded.pop("index")))
+      keys = jax.vmap(functools.partial(_fold_ids, base))(jnp.asarray(padded.pop("index")))
       batch = sharding.shard_batch({**padded, "keys": keys}, mesh)
       out = _predict(self.tokenizer, self.denoiser, batch["xi"], batch["mask"], batch["v0"],
                      batch["psi0"], batch["keys"], schedule, config=self.sampling)

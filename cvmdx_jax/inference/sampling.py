@@ -1,4 +1,4 @@
-"""The inference path: (denoiser params, tokens q, delta, v0, psi0, keys[, ego
+"""The inference path: (a `bundles.Denoiser`, tokens q, delta, v0, psi0, keys[, ego
 features]) -> N sampled control sequences, their trajectories, the mean trajectory and
 the hypotheses. Plain jittable code: the caller jits at its boundary (`predictor.Predictor`;
 `jax.jit(predict_batch, static_argnames=STATIC_ARGNAMES)` for a batch alone).
@@ -13,19 +13,17 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants, ego_motion, targets, vmm
-from cvmdx_jax.config.denoiser import DenoiserConfig
-from cvmdx_jax.config.fields import ConfigFieldError
-from cvmdx_jax.config.sampling import SamplingConfig, check_sampler
-from cvmdx_jax.diffusion import (Schedule, cond_uncond_v_fn, ddim_sample, ddpm_sample,
-                                 guidance_weight, guided_v_fn, official_ddim_sample)
-from cvmdx_jax.diffusion.distillation import distilled_sample, student_cond
-from cvmdx_jax.diffusion.solvers import dpmpp_2m_sample
+from cvmdx_jax.config.sampling import SamplingConfig, check_sampling
+from cvmdx_jax.diffusion import (Schedule, cond_uncond_v_fn, get_sampler, guidance_weight,
+                                 guided_v_fn, official_ddim_sample)
+from cvmdx_jax.diffusion.distillation import student_cond
 from cvmdx_jax.errors import UserError
+from cvmdx_jax.inference.bundles import Denoiser
 from cvmdx_jax.models.unet1d import apply_intent, apply_unet
 from cvmdx_jax.multimodal import Hypotheses, fit_hypotheses
 
 # of `predict_batch` under jax.jit
-STATIC_ARGNAMES = ("graphdef", "null_token", "config", "denoiser_config")
+STATIC_ARGNAMES = ("config",)
 
 
 @jax.tree_util.register_dataclass
@@ -56,7 +54,6 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
   guidance_input: the U-Net is a guidance student (its last FiLM feature is w(t, delta)):
   one evaluation per step replaces the guided pair.
   """
-  check_sampler(config, guidance_input)
   n = config.num_samples
   if ego is not None:
     ego = jnp.broadcast_to(ego, (n, ego.shape[-1]))
@@ -81,15 +78,9 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
 
 def _sample(v_fn, key, shape, schedule: Schedule, config: SamplingConfig):
   """x0 samples of `shape` from the guided `v_fn` with the sampler of `config`."""
-  if config.sampler == "distilled":
-    return distilled_sample(v_fn, key, shape, schedule, config.steps, clip_x0=config.clip_x0)
-  if config.sampler == "ddpm":
-    return ddpm_sample(v_fn, key, shape, schedule, clip_x0=config.clip_x0)
-  if config.sampler == "dpmpp2m":
-    return dpmpp_2m_sample(v_fn, key, shape, schedule, steps=config.steps,
-                           clip_x0=config.clip_x0)
-  return ddim_sample(v_fn, key, shape, schedule, steps=config.steps, eta=config.eta,
-                     clip_x0=config.clip_x0)
+  sample = get_sampler(config.sampler, steps=config.steps, eta=config.eta,
+                       clip_x0=config.clip_x0)
+  return sample(v_fn, key, shape, schedule)
 
 
 def draw_intents(logits, key, n: int):
@@ -101,15 +92,13 @@ def draw_intents(logits, key, n: int):
   return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[-1] - 1)
 
 
-def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, schedule: Schedule,
-                  null_token: int, config: SamplingConfig = SamplingConfig(),
-                  denoiser_config: DenoiserConfig = DenoiserConfig()
-                  ) -> Prediction:
+def predict_batch(denoiser: Denoiser, q, delta, v0, psi0, keys, ego=None, *,
+                  schedule: Schedule, config: SamplingConfig = SamplingConfig()) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.
 
   Args:
-    graphdef: the U-Net graph definition (static).
-    params: U-Net parameters.
+    denoiser: the trained `Denoiser` bundle (its U-Net, null token Q and `DenoiserConfig`:
+      control scale, conditioning, residual decay).
     q: (B,) int scenario tokens.
     delta: (B,) Mahalanobis uncertainty of each scenario.
     v0: (B,) ego speed at t0, m/s.
@@ -117,19 +106,15 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
     keys: (B,) PRNG keys, one per scenario.
     ego: (B, F) `ego_motion.ego_features`; required unless the conditioning is "token".
     schedule: the diffusion `Schedule` the model was trained with.
-    null_token: the unconditional token (Q).
     config: `SamplingConfig`.
-    denoiser_config: the trained denoiser's `DenoiserConfig` (control scale,
-      conditioning, residual decay).
 
   Returns:
     `Prediction`.
   """
+  graphdef, params = denoiser.graphdef, denoiser.params
+  denoiser_config = denoiser.config.diffusion
+  check_sampling(config, denoiser_config)
   conditioning = denoiser_config.conditioning
-  if not denoiser_config.intent_conditioning and any(w != 1 for w in config.intent_prior):
-    raise ConfigFieldError("sampling.intent_prior", config.intent_prior,
-                           "this denoiser draws no maneuver classes (it was trained without "
-                           "diffusion.intent_conditioning): leave it at 1, 1, 1")
   if conditioning != "token" and ego is None:
     raise UserError(f"predict_batch: conditioning {conditioning!r} needs ego features")
   film = ego if ego_motion.uses_film(conditioning) else None
@@ -140,7 +125,7 @@ def predict_batch(graphdef, params, q, delta, v0, psi0, keys, ego=None, *, sched
     film = jnp.concatenate([jnp.broadcast_to(ego[:, None], intents.shape + ego.shape[-1:]),
                             jax.nn.one_hot(intents, logits.shape[-1], dtype=ego.dtype)], -1)
   x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
-      graphdef, params, qi, di, ki, schedule=schedule, null_token=null_token,
+      graphdef, params, qi, di, ki, schedule=schedule, null_token=denoiser.null_token,
       config=config, ego=ei, guidance_input=denoiser_config.guidance_input))(
           q, delta, keys, film)
   controls = targets.denormalize_controls(x0, denoiser_config.control_scale)

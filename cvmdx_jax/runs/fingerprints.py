@@ -32,21 +32,15 @@ def tokenizer_checkpoint(tokens_meta: dict) -> dict:
 def diffusion(config, dataset_id: str, tokens_meta: dict) -> dict:
   """What a denoiser checkpoint belongs to: the U-Net (`config.model`, sized for the
   tokens), T, the control scale, the dataset, the tokeniser checkpoint and (beyond the
-  paper) the ego-motion conditioning, the class weights and the intent conditioning. Fields that
-  came after the first runs stay out at their defaults, so that those runs keep their
-  fingerprints."""
+  paper) the ego-motion conditioning, the class weights and the intent conditioning."""
   d = config.diffusion
-  model = dataclasses.asdict(config.model)
-  for field in ("cond_hidden", "num_intents", "intent_features"):
-    if not model[field]:
-      del model[field]
-  intent = {"intent_conditioning": True} if d.intent_conditioning else {}
-  return {**intent, "model": model, "num_diffusion_steps": d.num_steps,
+  return {"model": dataclasses.asdict(config.model), "num_diffusion_steps": d.num_steps,
           "control_scale": list(d.control_scale), "dataset_id": dataset_id,
           "tokenizer": tokenizer_checkpoint(tokens_meta),
           "conditioning": {"name": d.conditioning, "features": ego_motion.NUM_FEATURES,
                            "residual_decay_s": list(d.residual_decay_s)},
-          "class_weights": list(d.class_weights)}
+          "class_weights": list(d.class_weights),
+          "intent_conditioning": d.intent_conditioning}
 
 
 def baseline(config, dataset_id: str, tokens_meta: dict) -> dict:

@@ -183,8 +183,9 @@ class Checkpoints:
         self._ckptr.close()
 
   @property
-  def latest_step(self) -> int | None:
-    """The highest complete step, or None when there is none."""
+  def latest_epoch(self) -> int | None:
+    """The highest complete step, or None when there is none: an epoch, as every trainer
+    saves one step per epoch, named by its number."""
     return self._steps[-1] if self._steps else None
 
   def save(self, step: int, state: Any, metadata: Any) -> None:
@@ -233,7 +234,7 @@ class Checkpoints:
     """Restores `step` into the structure, shapes and shardings of `abstract_state`.
 
     Args:
-      step: a complete step (see `latest_step`).
+      step: a complete step (see `latest_epoch`).
       abstract_state: pytree of `jax.ShapeDtypeStruct` (with `sharding`) to restore into.
       partial: restore only the leaves of `abstract_state` (e.g. the parameters without
         the optimiser state); other leaves of the checkpoint are not read.
@@ -287,6 +288,6 @@ def load_latest(root: str | os.PathLike, abstract_state: Any, *,
     CheckpointMismatchError: no complete checkpoint, or `Checkpoints.load`'s reasons.
   """
   ckpts = Checkpoints(root, writable=False)
-  if ckpts.latest_step is None:
+  if ckpts.latest_epoch is None:
     raise CheckpointMismatchError(f"no complete checkpoint under {ckpts.root}")
-  return ckpts.load(ckpts.latest_step, abstract_state, partial=partial)
+  return ckpts.load(ckpts.latest_epoch, abstract_state, partial=partial)

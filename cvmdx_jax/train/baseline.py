@@ -14,7 +14,7 @@ cross-entropy part of the loss is measured against winners that move as the head
 and on the demo data it made the val loss pick an early, worse epoch; BUILD_NOTES.md), so
 the choice is checkpointed, resumed and bit-identical like the rest of the state.
 `metrics.jsonl` holds the val curve (`val_*` per epoch); the run directory is laid out
-in `runs.layout` and loaded with `runs.loaders.load_baseline`.
+in `runs.layout` and loaded with `inference.bundles.load_baseline`.
 
 Train state: {"params", "opt_state", "step", "val" (the last val read-outs), "best"
 {"params", "val_score", "epoch"}}.

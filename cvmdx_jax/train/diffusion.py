@@ -148,7 +148,7 @@ def train(config: DiffusionRunConfig, workdir: str | os.PathLike):
   """Trains the denoiser into `workdir` (resuming if possible); returns the final state.
 
   `workdir` gets `config.json` (`config` with the tokens' Q), `metrics.jsonl` and
-  `checkpoints/` (`runs.loaders.load_denoiser` reads them for inference).
+  `checkpoints/` (`inference.bundles.load_denoiser` reads them for inference).
   """
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
   config = config.with_tokens(num_tokens)

@@ -39,8 +39,9 @@ from cvmdx_jax.diffusion import cosine_schedule, guidance_weight, guided_v_fn, p
 from cvmdx_jax.diffusion import distillation
 from cvmdx_jax.diffusion.losses import weighted_mse
 from cvmdx_jax.errors import UserError
+from cvmdx_jax.inference.bundles import Denoiser, load_denoiser
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.runs import fingerprints, layout, loaders
+from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import loop
@@ -108,7 +109,7 @@ def make_init_fn(teacher_params: dict, cfg: UNetConfig, tx):
   return init_fn
 
 
-def make_step_fn(teacher: loaders.Denoiser, student: DiffusionRunConfig, tx, *, stage: str,
+def make_step_fn(teacher: Denoiser, student: DiffusionRunConfig, tx, *, stage: str,
                  substeps: int):
   """The pure train step: the teacher's v-target at noised data (for a progressive stage
   `substeps` teacher steps per student step), the student's v-loss, AdamW and the EMA
@@ -160,7 +161,7 @@ def make_step_fn(teacher: loaders.Denoiser, student: DiffusionRunConfig, tx, *, 
   return step_fn
 
 
-def check_teacher(teacher: loaders.Denoiser, config: DistillRunConfig) -> str:
+def check_teacher(teacher: Denoiser, config: DistillRunConfig) -> str:
   """The stage the teacher teaches; TeacherMismatchError where it cannot teach this run."""
   stage = stage_of(teacher.config, config.guided_progressive)
   if config.guided_progressive and stage != "guided_progressive":
@@ -191,7 +192,7 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
     CheckpointMismatchError: the workdir's checkpoint belongs to another run (e.g.
       another teacher: the message names `distill.teacher.params_id`).
   """
-  teacher = loaders.load_denoiser(config.teacher_dir)
+  teacher = load_denoiser(config.teacher_dir)
   stage = check_teacher(teacher, config)
   student = student_config(teacher.config, config)
   data, num_tokens, dataset_id, tokens_meta = diffusion_train.training_data(student, delta=True)
@@ -208,12 +209,10 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
   train_cfg = {k: v for k, v in dataclasses.asdict(config.train).items()
                if k not in ("checkpoint_every", "keep")}
   fingerprint["distill"] = {
-      "stage": stage, "steps": config.steps, "train": train_cfg,
-      "guidance": dataclasses.asdict(student.sampling.guidance),
+      "stage": stage, "steps": config.steps, "teacher_substeps": config.teacher_substeps,
+      "train": train_cfg, "guidance": dataclasses.asdict(student.sampling.guidance),
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
-  if config.teacher_substeps != DistillRunConfig.teacher_substeps:  # runs before the field
-    fingerprint["distill"]["teacher_substeps"] = config.teacher_substeps
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(

@@ -178,7 +178,7 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
   step = jax.jit(keyed_step, donate_argnums=0)
   data = {k: np.asarray(v) for k, v in data.items()}
   with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts:
-    done = ckpts.latest_step or 0
+    done = ckpts.latest_epoch or 0
     if done:
       state, saved = ckpts.load(done, abstract)
       identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}",

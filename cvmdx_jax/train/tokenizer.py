@@ -1,11 +1,11 @@
 """Training of the scenario tokeniser (CVQ-VAE / VQ-VAE + maneuver head).
 
-`train_and_evaluate(config, workdir)` trains on the "train" split with the shared loop
-(`cvmdx_jax.train.loop`), logs per epoch the loss terms and, over the whole training
-split, entries in use, perplexity and classifier accuracy; then fits the per-entry
-Gaussians on the training latents and saves tokens q, latents z_hat and delta of every
-split under `<workdir>/tokens/` (`runs.tokens`), plus `<workdir>/tokenizer.json`
-(model settings, fingerprint) for `runs.loaders.load_tokenizer`.
+`train(config, workdir)` trains on the "train" split with the shared loop
+(`cvmdx_jax.train.loop`), logging per epoch the loss terms and, over the whole training
+split, entries in use, perplexity and classifier accuracy; then `export_tokens` fits the
+per-entry Gaussians on the training latents and saves tokens q, latents z_hat and delta of
+every split under `<workdir>/tokens/` (`runs.tokens`). `<workdir>/tokenizer.json` (model
+settings, fingerprint) is for `inference.bundles.load_tokenizer`.
 
 The train state is a plain pytree: {"step", "params" (pure dict of the NNX Params),
 "opt_state", "usage" (Q,) running codebook usage}.
@@ -107,9 +107,9 @@ def _load_splits(config: TokenizerRunConfig) -> tuple[dict[str, Scenarios], str]
 
 
 @locking.holds("workdir")
-def train_and_evaluate(config: TokenizerRunConfig, workdir: str | os.PathLike, *,
-                       splits: dict[str, Scenarios] | None = None) -> dict:
-  """Trains the tokeniser (or resumes / returns a finished run) and writes its outputs.
+def train(config: TokenizerRunConfig, workdir: str | os.PathLike, *,
+          splits: dict[str, Scenarios] | None = None) -> dict:
+  """Trains the tokeniser (or resumes / returns a finished run), then exports its tokens.
 
   Args:
     config: the run (`TokenizerRunConfig.from_config` of configs/tokenizer.py).
@@ -130,41 +130,50 @@ def train_and_evaluate(config: TokenizerRunConfig, workdir: str | os.PathLike, *
     raise UserError(f"tokenizer: splits {sorted(splits)} lack 'train' (config.splits)")
   for name, s in splits.items():
     s.validate(source=f"{config.data_dir}/{name}")
-  train = splits["train"]
+  train_split = splits["train"]
   tx = optimizer(config.train)
   graphdef = tokenizer_lib.make_graphdef(model_cfg)
   fp = fingerprints.tokenizer(model_cfg, dataset_id)
   saved = layout.saved_tokenizer_fingerprint(workdir)
   if saved is not None:
     identity.check(saved, fp, f"tokeniser run {workdir}", CheckpointMismatchError)
-  xi_train, mask_train = jnp.asarray(train.xi), jnp.asarray(train.mask)
+  xi_train, mask_train = jnp.asarray(train_split.xi), jnp.asarray(train_split.mask)
 
   def epoch_end_fn(state, epoch):
     del epoch
     _, q, logits = _encode_jit(graphdef, state["params"], xi_train, mask_train,
                                config.encode_batch)
     in_use, perplexity = quantizer_lib.codebook_stats(q, model_cfg.quantizer.codebook_size)
-    accuracy = jnp.mean(jnp.argmax(logits, -1) == jnp.asarray(train.label))
+    accuracy = jnp.mean(jnp.argmax(logits, -1) == jnp.asarray(train_split.label))
     return {"entries_in_use": in_use, "perplexity": perplexity, "train_accuracy": accuracy}
 
   state = loop.train(
       workdir=workdir, init_fn=make_init_fn(model_cfg, tx),
       step_fn=make_step_fn(graphdef, model_cfg, tx),
-      data={"xi": train.xi, "mask": train.mask, "label": train.label},
+      data={"xi": train_split.xi, "mask": train_split.mask, "label": train_split.label},
       batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
       seed=config.seed, fingerprint=fp, checkpoint_every=config.train.checkpoint_every,
       keep=config.train.keep,
       epoch_end_fn=epoch_end_fn, desc=f"tokenizer {model_cfg.quantizer.kind}",
       on_start=lambda: layout.write_tokenizer_dir(workdir, model_cfg, fp))
-  if not sharding.is_primary():  # process 0 writes the tokens of a multi-process run
-    return state
+  if sharding.is_primary():  # process 0 writes the tokens of a multi-process run
+    export_tokens(config, workdir, state, splits, dataset_id, fp)
+  return state
 
+
+def export_tokens(config: TokenizerRunConfig, workdir: str | os.PathLike, state: dict,
+                  splits: dict[str, Scenarios], dataset_id: str, fingerprint: dict) -> None:
+  """Fits the per-entry Gaussians on the train split's latents of the trained `state` and
+  writes them and the tokens (q, z_hat, delta) of every split under `<workdir>/tokens/`,
+  each with the metadata of the checkpoint that made them (dataset id, step, params id)."""
+  model_cfg = config.model
+  graphdef = tokenizer_lib.make_graphdef(model_cfg)
   workdir = Path(workdir)
   meta = {"dataset_id": dataset_id, "data_dir": config.data_dir,
           "codebook_size": model_cfg.quantizer.codebook_size,
           "latent_dim": model_cfg.encoder.latent_dim, "quantizer": model_cfg.quantizer.kind,
           "checkpoint": {"workdir": str(workdir.resolve()), "step": int(state["step"]),
-                         "fingerprint": fp,
+                         "fingerprint": fingerprint,
                          "params_id": content_id(state["params"])}}
   encoded = {name: _encode_jit(graphdef, state["params"], jnp.asarray(s.xi),
                                jnp.asarray(s.mask), config.encode_batch)
@@ -179,5 +188,3 @@ def train_and_evaluate(config: TokenizerRunConfig, workdir: str | os.PathLike, *
     tokens_lib.save_tokens(tokens_lib.tokens_path(workdir, name),
                            tokens_lib.Tokens(np.asarray(q), np.asarray(z_hat), np.asarray(delta)),
                            {**meta, "split": name})
-  return state
-

@@ -101,6 +101,7 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
   """sampler="dpmpp2m" runs through predict_batch and, at many steps, lands where
   many-step DDIM does: both integrate the same guided probability-flow ODE."""
   from cvmdx_jax.inference import sampling
+  from tests.inference.denoisers import bundle
   cfg, g, p = _tiny_unet()
   predict = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
   b = 2
@@ -108,9 +109,9 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
 
   def run(sampler, steps):
     config = SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
-    return predict(g, p, jnp.arange(b), jnp.array([5.0, 40.0]), jnp.full(b, 30.0),
+    return predict(bundle(g, p, cfg), jnp.arange(b), jnp.array([5.0, 40.0]), jnp.full(b, 30.0),
                    jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
-                   null_token=cfg.null_token, config=config).controls
+                   config=config).controls
 
   few = run("dpmpp2m", 4)
   assert few.shape == (b, 3, 125, 2) and bool(jnp.all(jnp.isfinite(few)))

@@ -22,10 +22,10 @@ from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference import export
+from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import uncertainty, unet1d
-from cvmdx_jax.runs import loaders
 from cvmdx_jax.storage.checksums import CorruptRunError
 from tests import subprocess_env
 
@@ -41,7 +41,7 @@ def _random_predictor() -> Predictor:
   graphdef, params = tokenizer_lib.init_tokenizer(tok_cfg, jax.random.key(0))
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
-  tokenizer = loaders.TokenizerBundle(
+  tokenizer = TokenizerBundle(
       params, uncertainty.Gaussians(params["codebook"], eye, eye, jnp.ones(q)), graphdef,
       tok_cfg, ml_collections.FrozenConfigDict({"dataset_id": "none"}))
   cfg = diffusion_config.get_config("tiny")
@@ -50,7 +50,7 @@ def _random_predictor() -> Predictor:
   cfg.diffusion.guidance_input = True
   config = DiffusionRunConfig.from_config(cfg).with_tokens(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
-  denoiser = loaders.Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
+  denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
   return Predictor(tokenizer, denoiser, SamplingConfig(num_samples=4, sampler="distilled",
                                                        steps=2), chunk_size=8)
 

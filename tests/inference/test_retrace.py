@@ -21,9 +21,9 @@ from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference import predictor as predict
+from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import unet1d, uncertainty
-from cvmdx_jax.runs import loaders
 from tests.train import toy
 from tests.train.toy_job import task
 
@@ -42,11 +42,11 @@ def _random_predictor(chunk_size: int) -> predict.Predictor:
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
   gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = loaders.TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
+  tokenizer = TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
                                    ml_collections.FrozenConfigDict({"dataset_id": "none"}))
   config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
-  denoiser = loaders.Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
+  denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
   sampling = SamplingConfig(num_samples=3, steps=2)
   return predict.Predictor(tokenizer, denoiser, sampling, chunk_size=chunk_size)
 

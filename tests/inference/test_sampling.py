@@ -13,6 +13,7 @@ from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
+from tests.inference.denoisers import bundle
 
 CFG = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2)
@@ -30,9 +31,9 @@ def model():
 def _predict(model, keys, b=3, config=SAMPLING, denoiser=DenoiserConfig()):
   g, p = model
   q = jnp.arange(b) % 4
-  return predict_batch(g, p, q, jnp.linspace(0.0, 60.0, b), jnp.full(b, 30.0),
-                       jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
-                       null_token=CFG.null_token, config=config, denoiser_config=denoiser)
+  return predict_batch(bundle(g, p, CFG, denoiser), q, jnp.linspace(0.0, 60.0, b),
+                       jnp.full(b, 30.0), jnp.zeros(b), keys,
+                       schedule=diffusion.cosine_schedule(), config=config)
 
 
 def test_shapes_and_consistency(model):
@@ -57,9 +58,9 @@ def test_deterministic_and_batch_independent(model):
   other = _predict(model, jax.random.split(jax.random.key(8), 3))
   assert not np.allclose(a.trajectories, other.trajectories)
   g, p = model
-  solo = predict_batch(g, p, jnp.array([1]), jnp.array([30.0]), jnp.array([30.0]),
-                       jnp.zeros(1), keys[1:2], schedule=diffusion.cosine_schedule(),
-                       null_token=CFG.null_token, config=SAMPLING)
+  solo = predict_batch(bundle(g, p, CFG), jnp.array([1]), jnp.array([30.0]),
+                       jnp.array([30.0]), jnp.zeros(1), keys[1:2],
+                       schedule=diffusion.cosine_schedule(), config=SAMPLING)
   np.testing.assert_allclose(solo.trajectories[0], a.trajectories[1], atol=1e-3)
 
 
@@ -83,12 +84,11 @@ def test_control_scale_sets_the_physical_range(model):
   assert float(jnp.abs(b.controls[..., 1]).max()) <= 0.1 + 1e-6
 
 
-def _predict_ego(g, p, ego, keys, config, denoiser):
+def _predict_ego(g, p, ego, keys, config, denoiser, unet=CFG):
   b = ego.shape[0]
-  return sampling.predict_batch(g, p, jnp.arange(b) % 4, jnp.full(b, 10.0), jnp.full(b, 30.0),
-                                jnp.zeros(b), keys, ego, schedule=diffusion.cosine_schedule(),
-                                null_token=CFG.null_token, config=config,
-                                denoiser_config=denoiser)
+  return sampling.predict_batch(bundle(g, p, unet, denoiser), jnp.arange(b) % 4,
+                                jnp.full(b, 10.0), jnp.full(b, 30.0), jnp.zeros(b), keys, ego,
+                                schedule=diffusion.cosine_schedule(), config=config)
 
 
 @pytest.mark.slow
@@ -102,15 +102,15 @@ def test_ego_film_reaches_the_unconditional_branch():
   uncond_only = dataclasses.replace(
       SAMPLING, guidance=GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
   film = DenoiserConfig(conditioning="ego_film")
-  a = _predict_ego(g, p, ego, keys, uncond_only, film)
-  b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only, film)
+  a = _predict_ego(g, p, ego, keys, uncond_only, film, cfg)
+  b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only, film, cfg)
   assert not np.allclose(a.controls, b.controls)
   np.testing.assert_array_equal(a.controls,
-                                _predict_ego(g, p, ego, keys, uncond_only, film).controls)
+                                _predict_ego(g, p, ego, keys, uncond_only, film, cfg).controls)
   with pytest.raises(ValueError, match="needs ego features"):
-    sampling.predict_batch(g, p, jnp.arange(2), jnp.zeros(2), jnp.full(2, 30.0), jnp.zeros(2),
-                           keys, schedule=diffusion.cosine_schedule(),
-                           null_token=CFG.null_token, config=uncond_only, denoiser_config=film)
+    sampling.predict_batch(bundle(g, p, cfg, film), jnp.arange(2), jnp.zeros(2),
+                           jnp.full(2, 30.0), jnp.zeros(2), keys,
+                           schedule=diffusion.cosine_schedule(), config=uncond_only)
 
 
 def test_ego_residual_adds_the_extrapolated_controls(model):

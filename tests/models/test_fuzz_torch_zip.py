@@ -18,7 +18,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from cvmdx_jax.models import torch_zip
+from cvmdx_jax.models import torch_tensors, torch_zip
 from tests.models import official_fixture as fx
 
 READ, MAYBE, REFUSE, ANY = "read", "maybe", "refuse", "any"
@@ -71,7 +71,7 @@ def _equal(got, want) -> bool:
 
 def _plain(obj, depth=0) -> int:
   """Bytes of the arrays in a tree of plain values (AssertionError if it is not one)."""
-  assert depth < torch_zip.MAX_DEPTH
+  assert depth < torch_tensors.MAX_DEPTH
   if isinstance(obj, np.ndarray):
     return obj.nbytes
   if isinstance(obj, dict):

@@ -14,10 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cvmdx_jax.inference.bundles import load_denoiser
 from cvmdx_jax.models import torch_zip
-from cvmdx_jax.runs import loaders
-from cvmdx_jax.storage import locking
 from cvmdx_jax.models import official_import, unet1d
+from cvmdx_jax.models.official_state import OfficialCheckpointError, unet_config, unwrap_state_dict
+from cvmdx_jax.storage import locking
 from tests.models import official_fixture as fx
 from tests.subprocess_env import pythonpath
 
@@ -63,7 +64,7 @@ def test_reader_refuses_code_and_other_formats(tmp_path):
 
 
 def test_config_is_read_from_the_state_dict(official):
-  cfg = official_import.unet_config(official)
+  cfg = unet_config(official)
   assert (cfg.num_tokens, cfg.null_token, cfg.base_channels, cfg.channel_mult,
           cfg.num_res_blocks, cfg.emb_mult, cfg.attention_levels, cfg.num_heads,
           cfg.groups) == (Q, Q, 32, (1, 2), 1, 2, (1,), 4, 32)
@@ -91,39 +92,39 @@ def test_imported_unet_equals_the_official_forward(official, tmp_path, monkeypat
 def test_wrapped_and_prefixed_state_dicts(official, monkeypatch):
   other = {k: v + 1 for k, v in official.items()}
   wrapped = {"model": official, "ema": {f"module.{k}": v for k, v in other.items()}, "step": 3}
-  with pytest.raises(official_import.OfficialCheckpointError, match="key="):
-    official_import.unwrap_state_dict(wrapped, "ckpt.pt")
-  got = official_import.unwrap_state_dict(wrapped, "ckpt.pt", key="ema")
+  with pytest.raises(OfficialCheckpointError, match="key="):
+    unwrap_state_dict(wrapped, "ckpt.pt")
+  got = unwrap_state_dict(wrapped, "ckpt.pt", key="ema")
   np.testing.assert_array_equal(got["out.2.bias"], other["out.2.bias"])
-  single = official_import.unwrap_state_dict({"state_dict": official, "epoch": 1}, "c.pt")
+  single = unwrap_state_dict({"state_dict": official, "epoch": 1}, "c.pt")
   np.testing.assert_array_equal(single["label_emb.weight"], official["label_emb.weight"])
 
 
 def test_mismatched_state_dicts_are_refused(official):
   extra = {**official, "input_blocks.1.0.foo.weight": np.zeros(3, np.float32)}
-  with pytest.raises(official_import.OfficialCheckpointError, match="foo"):
-    official_import.params_from_state_dict(extra, official_import.unet_config(official))
+  with pytest.raises(OfficialCheckpointError, match="foo"):
+    official_import.params_from_state_dict(extra, unet_config(official))
   wrong = dict(official)
   wrong["out.2.weight"] = np.zeros((4, 32, 3), np.float32)  # learn_sigma=True
-  with pytest.raises(official_import.OfficialCheckpointError, match="2 -> 4"):
-    official_import.unet_config(wrong)
+  with pytest.raises(OfficialCheckpointError, match="2 -> 4"):
+    unet_config(wrong)
 
 
 def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   path = tmp_path / "model000100.pt"
   fx.write_pt(path, official, monkeypatch)
   workdir = tmp_path / "run"
-  (workdir / ".import.killed" / "checkpoints").mkdir(parents=True)  # an import killed -9
+  # an import killed -9: a checkpoint step and no config.json (the new one would collide)
+  (workdir / "checkpoints" / "1").mkdir(parents=True)
   cmd = [sys.executable, "experiments/import_official.py", f"--checkpoint={path}",
          f"--workdir={workdir}"]
   env = {"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
-  assert not list(workdir.glob(".import.*"))
   with warnings.catch_warnings():
     warnings.simplefilter("error")
-    denoiser = loaders.load_denoiser(workdir)
-  assert denoiser.unet == official_import.unet_config(official)
+    denoiser = load_denoiser(workdir)
+  assert denoiser.unet == unet_config(official)
   assert denoiser.config.sampling.mode == "official"
   _, want = official_import.load_official(path)
   jax.tree.map(np.testing.assert_array_equal, denoiser.params, want)
@@ -162,7 +163,7 @@ def test_malformed_parameters_name_file_and_parameter(official, tmp_path, monkey
                                                       value, message):
   path = tmp_path / "bad.pt"
   fx.write_pt(path, {**official, name: value}, monkeypatch)
-  with pytest.raises(official_import.OfficialCheckpointError) as e:
+  with pytest.raises(OfficialCheckpointError) as e:
     official_import.load_official(path)
   assert str(e.value).startswith(f"{path}: ") and name in str(e.value)
   assert message in str(e.value) and "\n" not in str(e.value)
@@ -171,11 +172,11 @@ def test_malformed_parameters_name_file_and_parameter(official, tmp_path, monkey
 def test_non_string_keys_are_refused(official, tmp_path, monkeypatch):
   path = tmp_path / "int_keys.pt"
   fx.write_pt(path, {**official, 3: np.zeros(2, np.float32)}, monkeypatch)
-  with pytest.raises(official_import.OfficialCheckpointError,
+  with pytest.raises(OfficialCheckpointError,
                      match="int_keys.pt: the state dict has a key 3 of type int"):
     official_import.load_official(path)
   fx.write_pt(path, {0: np.zeros(2, np.float32)}, monkeypatch)  # no parameter names at all
-  with pytest.raises(official_import.OfficialCheckpointError, match="found entries"):
+  with pytest.raises(OfficialCheckpointError, match="found entries"):
     official_import.load_official(path)
 
 

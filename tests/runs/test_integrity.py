@@ -17,8 +17,8 @@ import pytest
 
 from cvmdx_jax import sharding
 from cvmdx_jax.data import dataset
+from cvmdx_jax.inference.bundles import load_denoiser, load_tokenizer
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
-from cvmdx_jax.runs import loaders as runs_lib
 from cvmdx_jax.runs import tokens
 from cvmdx_jax.storage import atomic, checkpointing, checksums, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
@@ -97,7 +97,7 @@ def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs, other_tok
     with pytest.raises(CheckpointMismatchError, match=differing):
       fixtures_runs.train_diffusion(config, workdir)
     assert _snapshot(workdir) == before, differing
-  loaded = runs_lib.load_denoiser(workdir)  # still the run it was
+  loaded = load_denoiser(workdir)  # still the run it was
   assert loaded.config.diffusion.control_scale == (4.0, 0.7)
 
 
@@ -138,7 +138,7 @@ def test_a_flipped_byte_in_a_tokens_file_is_refused_naming_it(runs, tmp_path):
 
 @pytest.mark.parametrize("run", ["tokenizer", "diffusion"])
 def test_a_flipped_byte_anywhere_in_a_checkpoint_is_refused_naming_the_file(runs, tmp_path, run):
-  load = runs_lib.load_tokenizer if run == "tokenizer" else runs_lib.load_denoiser
+  load = load_tokenizer if run == "tokenizer" else load_denoiser
   step_dir = next((runs / run / "checkpoints").iterdir())
   files = sorted(p.relative_to(runs / run) for p in step_dir.rglob("*")
                  if p.is_file() and p.name != checksums.MANIFEST)
@@ -176,8 +176,8 @@ def test_a_checkpoint_step_records_the_sha256_of_every_file_orbax_wrote(tmp_path
 
 def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(
     runs, other_tokenizer):
-  a = runs_lib.load_tokenizer(runs / "tokenizer")
-  b = runs_lib.load_tokenizer(other_tokenizer)
+  a = load_tokenizer(runs / "tokenizer")
+  b = load_tokenizer(other_tokenizer)
   assert a.fingerprint == b.fingerprint and a.checkpoint.step == b.checkpoint.step
   with pytest.raises(IncompatibleRunsError, match="params_id"):
     Predictor.load(other_tokenizer, runs / "diffusion")

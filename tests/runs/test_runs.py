@@ -41,6 +41,17 @@ def test_the_training_loop_does_not_import_the_inference_path():
   assert "cvmdx_jax.runs.loaders" not in _imported("cvmdx_jax.train.loop", "cvmdx_jax.runs")
 
 
+def test_the_trainers_and_the_run_configs_do_not_load_the_sampler():
+  """The typed configs live below the models (cvmdx_jax.config): building a run config
+  imports no inference code, and a trainer at most the bundles (a distillation's teacher),
+  never the sampler or the predictor."""
+  assert _imported("cvmdx_jax.config.runs", "cvmdx_jax.inference") == []
+  trainers = ("cvmdx_jax.train.tokenizer, cvmdx_jax.train.diffusion, cvmdx_jax.train.distill, "
+              "cvmdx_jax.train.baseline")
+  assert _imported(trainers, "cvmdx_jax.inference") in ([], ["cvmdx_jax.inference",
+                                                             "cvmdx_jax.inference.bundles"])
+
+
 def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
   section = ml_collections.ConfigDict({"steps": 4, "guidance": {"w_min": 0.3},
                                        "hypotheses": {"c_max": 2}})
@@ -129,19 +140,15 @@ def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value
   assert error.value.field == field
 
 
-def test_cond_hidden_enters_the_fingerprint_only_when_set():
-  """A run config without `model.cond_hidden` (config.json of a run before the field) keeps
-  its fingerprint; a set width is part of it."""
-  config = diffusion_config.get_config("demo")
-  del config.model["cond_hidden"]
-  del config.diffusion["intent_conditioning"]  # a run before either field
-  before = DiffusionRunConfig.from_config(config).with_tokens(8)
-  assert before.model.cond_hidden == ()
+def test_the_diffusion_fingerprint_holds_the_whole_unet_config():
+  """Every U-Net field is part of the fingerprint (no field left out for older runs): two
+  runs that differ in the conditioning MLP's widths are not one run."""
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("demo")).with_tokens(8)
   meta = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
-  fingerprint = fingerprints.diffusion(before, "data", meta)
-  assert "cond_hidden" not in fingerprint["model"]
-  assert fingerprint["model"] == {k: v for k, v in dataclasses.asdict(before.model).items()
-                                  if k not in ("cond_hidden", "num_intents", "intent_features")}
-  wide = dataclasses.replace(before, model=dataclasses.replace(before.model,
-                                                               cond_hidden=(256, 256)))
-  assert fingerprints.diffusion(wide, "data", meta)["model"]["cond_hidden"] == (256, 256)
+  fingerprint = fingerprints.diffusion(config, "data", meta)
+  assert fingerprint["model"] == dataclasses.asdict(config.model)
+  assert fingerprint["intent_conditioning"] is True
+  wide = dataclasses.replace(config, model=dataclasses.replace(config.model,
+                                                               cond_hidden=(256, 512)))
+  assert fingerprints.diffusion(wide, "data", meta) != fingerprint
+  assert fingerprints.diffusion(wide, "data", meta)["model"]["cond_hidden"] == (256, 512)

@@ -76,7 +76,7 @@ def test_refused_training_leaves_the_run_byte_identical(tmp_path, holder):
 
 
 def _tokenizer(workdir):
-  tokenizer.train_and_evaluate(TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")),
+  tokenizer.train(TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")),
                                workdir)
 
 

@@ -28,7 +28,7 @@ def test_round_trip_keeps_structure_values_and_metadata(tmp_path):
   with checkpointing.Checkpoints(tmp_path, keep=2) as ckpts:
     for step in (1, 2, 3):
       ckpts.save(step, state, {"q": step, "dims": (2, 3)})
-    assert ckpts.latest_step == 3
+    assert ckpts.latest_epoch == 3
   assert sorted(p.name for p in tmp_path.iterdir()) == ["2", "3"]  # keep=2
   restored, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(3, _abstract(state))
   assert meta == {"q": 3, "dims": [2, 3]}
@@ -143,7 +143,7 @@ def test_a_failed_save_leaves_no_temporary_directory_and_no_orbax_errors(tmp_pat
       ckpts.save(2, state, {"q": 2})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
     assert _orbax_records(caplog) == []
-    assert ckpts.latest_step == 1
+    assert ckpts.latest_epoch == 1
     with pytest.raises(ValueError, match="an earlier save failed"):
       ckpts.save(3, state, {"q": 3})
   restored, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(1, _abstract(state))
@@ -159,7 +159,7 @@ def test_opening_for_writing_removes_stale_temporary_directories(tmp_path):
   checkpointing.Checkpoints(tmp_path, writable=False)
   assert stale.is_dir()
   with checkpointing.Checkpoints(tmp_path) as ckpts:
-    assert ckpts.latest_step is None
+    assert ckpts.latest_epoch is None
   assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.orbax"]
 
 
@@ -174,7 +174,7 @@ def test_a_kill_between_commit_and_manifest_resumes_from_the_step_before(tmp_pat
   with pytest.raises(CheckpointMismatchError, match="no checksums.json"):
     checkpointing.load_latest(tmp_path, _abstract(_state()))
   with checkpointing.Checkpoints(tmp_path) as ckpts:
-    assert ckpts.latest_step == 1
+    assert ckpts.latest_epoch == 1
   assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
   _, meta = checkpointing.load_latest(tmp_path, _abstract(_state()))
   assert meta == {"step": 1}

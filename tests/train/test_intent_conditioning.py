@@ -13,17 +13,22 @@ from configs import distill as distill_config
 from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
-from cvmdx_jax.config.sampling import SamplingConfig
+from cvmdx_jax.config.sampling import SamplingConfig, check_sampling
+from cvmdx_jax import ego_motion
 from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill
+from tests.inference.denoisers import bundle
 
 EGO = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
                         attention_levels=(1,), num_heads=2, cond_dim=10, cond_hidden=(24, 12))
 INTENT = dataclasses.replace(EGO, num_intents=3, intent_features=7)
+# the same U-Net reading the real ego features (ego_motion.NUM_FEATURES), as a run's does
+FEATURES = ego_motion.NUM_FEATURES
+RUN_INTENT = dataclasses.replace(INTENT, cond_dim=FEATURES + 3, intent_features=FEATURES)
 META = {"checkpoint": {"fingerprint": {}, "step": 1, "params_id": "x"}}
 
 
@@ -124,32 +129,33 @@ def test_sample_rows_of_features_each_condition_their_own_sample():
 
 @pytest.mark.usefixtures("float32_arithmetic")  # batched vs one by one: other TF32 kernels on a GPU
 def test_predict_batch_conditions_each_sample_on_a_class_drawn_from_the_classifier():
-  g, p = unet1d.init_unet(INTENT, jax.random.key(0))
+  g, p = unet1d.init_unet(RUN_INTENT, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
   config = dataclasses.replace(SamplingConfig(), num_samples=4, steps=2)
   denoiser = _demo(intent_conditioning=True).diffusion
   b = 2
-  ego = jax.random.normal(jax.random.key(4), (b, 7))
+  ego = jax.random.normal(jax.random.key(4), (b, FEATURES))
   keys = jax.random.split(jax.random.key(5), b)
-  kw = dict(schedule=cosine_schedule(1000), null_token=5, config=config)
+  kw = dict(schedule=cosine_schedule(1000), config=config)
   # a classifier sure of class 2: every sample of both scenarios sees the one-hot of 2
   bias = p["intent_mlp"][2]["bias"]
   sure = jax.tree.map(lambda a: a, p)
   sure["intent_mlp"][2]["bias"] = bias.at[2].set(1e4)
   residual = dataclasses.replace(denoiser, conditioning="ego_film")
-  got = sampling.predict_batch(g, sure, jnp.array([1, 2]), jnp.zeros(b), jnp.full(b, 30.0),
-                               jnp.zeros(b), keys, ego, denoiser_config=residual, **kw)
+  got = sampling.predict_batch(bundle(g, sure, RUN_INTENT, residual), jnp.array([1, 2]),
+                               jnp.zeros(b), jnp.full(b, 30.0), jnp.zeros(b), keys, ego, **kw)
   sample_keys = jax.vmap(jax.random.split)(keys)[:, 0]
   for i in range(b):
     want = sampling.sample_controls(g, sure, jnp.array([1, 2])[i], 0.0, sample_keys[i],
-                                    ego=jnp.concatenate([ego[i], jnp.eye(3)[2]]), **kw)
+                                    ego=jnp.concatenate([ego[i], jnp.eye(3)[2]]),
+                                    null_token=5, **kw)
     np.testing.assert_allclose(got.controls[i] / jnp.asarray(residual.control_scale),
                                want, atol=1e-5)
 
 
 @pytest.mark.usefixtures("float32_arithmetic")  # batched vs one by one: other TF32 kernels on a GPU
 def test_the_intent_prior_reweights_the_class_draws():
-  g, p = unet1d.init_unet(INTENT, jax.random.key(0))
+  g, p = unet1d.init_unet(RUN_INTENT, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.05 * jax.random.normal(jax.random.key(9), a.shape), p)
   # a classifier with equal logits for every input: p = (1/3, 1/3, 1/3)
   p["intent_mlp"][2] = jax.tree.map(jnp.zeros_like, p["intent_mlp"][2])
@@ -157,20 +163,19 @@ def test_the_intent_prior_reweights_the_class_draws():
   config = SamplingConfig(num_samples=4, steps=2, intent_prior=(2, 1, 1))
   denoiser = dataclasses.replace(_demo(intent_conditioning=True).diffusion,
                                  conditioning="ego_film")
-  ego = jax.random.normal(jax.random.key(4), (1, 7))
+  ego = jax.random.normal(jax.random.key(4), (1, FEATURES))
   keys = jax.random.split(jax.random.key(5), 1)
-  kw = dict(schedule=cosine_schedule(1000), null_token=5, config=config)
-  got = sampling.predict_batch(g, p, jnp.array([1]), jnp.zeros(1), jnp.full(1, 30.0),
-                               jnp.zeros(1), keys, ego, denoiser_config=denoiser, **kw)
+  kw = dict(schedule=cosine_schedule(1000), config=config)
+  got = sampling.predict_batch(bundle(g, p, RUN_INTENT, denoiser), jnp.array([1]),
+                               jnp.zeros(1), jnp.full(1, 30.0), jnp.zeros(1), keys, ego, **kw)
   rows = jnp.concatenate([jnp.tile(ego, (4, 1)), jnp.eye(3)[jnp.array([0, 0, 1, 2])]], -1)
   want = sampling.sample_controls(g, p, jnp.array(1), 0.0, jax.random.split(keys[0])[0],
-                                  ego=rows, **kw)
+                                  ego=rows, null_token=5, **kw)
   np.testing.assert_allclose(got.controls[0] / jnp.asarray(denoiser.control_scale), want,
                              atol=1e-5)
   without = dataclasses.replace(denoiser, intent_conditioning=False)
   with pytest.raises(ConfigFieldError, match="no maneuver classes"):
-    sampling.predict_batch(g, p, jnp.array([1]), jnp.zeros(1), jnp.full(1, 30.0), jnp.zeros(1),
-                           keys, ego, denoiser_config=without, **kw)
+    check_sampling(config, without)  # what predict_batch checks first
   with pytest.raises(ConfigFieldError, match="3 weights") as error:
     SamplingConfig(intent_prior=(2, 1))
   assert error.value.field == "intent_prior"
@@ -183,7 +188,7 @@ def test_configs_check_and_fingerprint_the_intent_conditioning():
   assert (on.model.num_intents, on.model.intent_features) == (3, 41)
   assert on.model.cond_dim == off.model.cond_dim + 3
   off_print = fingerprints.diffusion(off, "data", META)
-  assert "num_intents" not in off_print["model"] and "intent_conditioning" not in off_print
+  assert off_print["model"]["num_intents"] == 0 and off_print["intent_conditioning"] is False
   on_print = fingerprints.diffusion(on, "data", META)
   assert on_print["model"]["num_intents"] == 3 and on_print["intent_conditioning"] is True
   with pytest.raises(ConfigFieldError, match="ego_film") as error:

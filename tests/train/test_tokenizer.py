@@ -1,4 +1,4 @@
-"""train_and_evaluate smoke run, loaders.load_tokenizer/tokenize, saved tokens, mismatch errors."""
+"""The tokeniser trainer's smoke run, load_tokenizer/tokenize, saved tokens, mismatch errors."""
 
 import json
 
@@ -10,7 +10,7 @@ import scipy.stats
 from configs import common
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax.config.runs import TokenizerRunConfig
-from cvmdx_jax.runs import loaders
+from cvmdx_jax.inference.bundles import TokenizerBundle, load_tokenizer
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import tokenizer as train_tok
@@ -23,7 +23,7 @@ def trained(tmp_path_factory, scenarios_factory):
   config.train.num_epochs = 2
   config = TokenizerRunConfig.from_config(config)
   splits = {"train": scenarios_factory(24, 0), "test": scenarios_factory(10, 1)}
-  train_tok.train_and_evaluate(config, workdir, splits=splits)
+  train_tok.train(config, workdir, splits=splits)
   return workdir, config, splits
 
 
@@ -46,9 +46,9 @@ def test_smoke_run_writes_metrics_and_tokens(trained):
 
 def test_load_tokenizer_reproduces_saved_tokens(trained):
   workdir, _, splits = trained
-  bundle = loaders.load_tokenizer(workdir)
+  bundle = load_tokenizer(workdir)
   test = splits["test"]
-  q, z_hat, delta = jax.jit(loaders.TokenizerBundle.tokenize)(bundle, test.xi, test.mask)
+  q, z_hat, delta = jax.jit(TokenizerBundle.tokenize)(bundle, test.xi, test.mask)
   saved, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(workdir, "test"))
   np.testing.assert_array_equal(q, saved.q)
   np.testing.assert_allclose(z_hat, saved.z_hat, atol=1e-5)
@@ -71,7 +71,7 @@ def test_checkpoint_with_other_codebook_size_is_refused(trained):
   other = tokenizer_config.get_config("tiny")
   other.quantizer.codebook_size = config.model.quantizer.codebook_size + 1
   with pytest.raises(CheckpointMismatchError, match="codebook_size"):
-    train_tok.train_and_evaluate(TokenizerRunConfig.from_config(other), workdir, splits=splits)
+    train_tok.train(TokenizerRunConfig.from_config(other), workdir, splits=splits)
 
 
 def test_bad_dataset_and_missing_files_give_clear_errors(trained, tmp_path):
@@ -79,11 +79,11 @@ def test_bad_dataset_and_missing_files_give_clear_errors(trained, tmp_path):
   bad = splits["train"].take(np.arange(24))
   object.__setattr__(bad, "xi", bad.xi[..., :3])  # 3 features instead of 4
   with pytest.raises(ValueError, match="'xi'"):
-    train_tok.train_and_evaluate(config, tmp_path / "bad", splits={"train": bad})
+    train_tok.train(config, tmp_path / "bad", splits={"train": bad})
   with pytest.raises(ValueError, match="lack 'train'"):
-    train_tok.train_and_evaluate(config, tmp_path / "bad", splits={"test": splits["test"]})
+    train_tok.train(config, tmp_path / "bad", splits={"test": splits["test"]})
   with pytest.raises(FileNotFoundError, match="tokenizer.json"):
-    loaders.load_tokenizer(tmp_path)
+    load_tokenizer(tmp_path)
   broken = tmp_path / "broken.npz"
   broken.write_bytes(b"not a zip")
   with pytest.raises(ValueError, match="broken.npz"):

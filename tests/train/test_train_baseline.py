@@ -12,7 +12,8 @@ import pytest
 from configs import baseline as baseline_config
 from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.config.runs import BaselineRunConfig
-from cvmdx_jax.runs import layout, loaders
+from cvmdx_jax.inference.bundles import load_baseline
+from cvmdx_jax.runs import layout
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import baseline
 from tests.train import baseline_data
@@ -44,7 +45,7 @@ def _curve(workdir):
 
 
 def _params(workdir):
-  return jax.tree.map(np.asarray, loaders.load_baseline(workdir).params)
+  return jax.tree.map(np.asarray, load_baseline(workdir).params)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +61,7 @@ def test_loss_falls_and_the_val_minimum_is_kept(trained):
   assert curve[-1]["loss"] < curve[0]["loss"]
   assert curve[-1]["val_min_ade"] < curve[0]["val_min_ade"]
   scores = [r["val_min_ade"] for r in curve]
-  chosen = loaders.load_baseline(trained)
+  chosen = load_baseline(trained)
   assert chosen.epoch == int(np.argmin(scores)) + 1 == curve[-1]["best_epoch"]
   np.testing.assert_allclose(curve[-1]["best_val_score"], min(scores), rtol=1e-6)
   assert sum(curve[-1]["val_head_share"]) == pytest.approx(1.0)

@@ -15,8 +15,9 @@ from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.inference import mdn_baseline
+from cvmdx_jax.inference.bundles import load_baseline
 from cvmdx_jax.models import mdn
-from cvmdx_jax.runs import layout, loaders
+from cvmdx_jax.runs import layout
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
 from cvmdx_jax.train import mdn as mdn_train
@@ -109,7 +110,7 @@ def test_another_seed_gives_other_parameters(dirs, trained):
 
 def test_a_multiple_choice_loader_refuses_the_run(trained):
   with pytest.raises(CheckpointMismatchError, match="config.json"):
-    loaders.load_baseline(trained)
+    load_baseline(trained)
 
 
 def test_bad_settings_are_refused_naming_the_field(dirs):
