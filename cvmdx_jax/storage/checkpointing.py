@@ -23,6 +23,8 @@ import contextlib
 import logging
 import os
 import shutil
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,7 @@ import jax
 import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import checksums, identity
 
 # orbax writes this file into the temporary directory just before the final rename; a
@@ -39,7 +42,7 @@ _STATE = "state"  # the checkpointable (subdirectory) that holds the state pytre
 _TMP_MARK = ".orbax-checkpoint-tmp"  # in the name of every directory orbax has not finished
 
 
-class CheckpointMismatchError(ValueError):
+class CheckpointMismatchError(UserError):
   """A checkpoint is missing, unreadable, or does not belong to the requested run."""
 
 
@@ -134,6 +137,19 @@ def _remove_temporaries(root: Path) -> None:
       shutil.rmtree(p, ignore_errors=True)
 
 
+def _join_orbax_threads(timeout_s: float = 60.0) -> None:
+  """Waits (at most `timeout_s` in all) for orbax's background threads to end, so that
+  none writes into a temporary directory after it has been removed."""
+  deadline = time.monotonic() + timeout_s
+  for thread in threading.enumerate():
+    if thread is not threading.current_thread() and type(thread).__module__.startswith(
+        "orbax"):
+      try:
+        thread.join(max(0.0, deadline - time.monotonic()))
+      except Exception:  # pylint: disable=broad-except
+        pass  # orbax's threads re-raise their error on join: the failed save's, passed on
+
+
 def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[int], list[Path]]:
   """(sorted steps with a commit marker, and with `with_manifest` also a checksums.json;
   the other step directories)."""
@@ -218,7 +234,9 @@ class Checkpoints:
 
     Orbax's metadata thread may still write into the failed step's temporary directory
     after the error has surfaced. The first `close` raises that error again before joining
-    the thread (orbax 0.12); a second one joins it.
+    the thread (orbax 0.12); a second one joins it. Its other background threads (the one
+    that writes `_sharding`, on a full disk still running after both) are joined before
+    the directories go.
     """
     ckptr, self._ckptr = self._ckptr, None
     for _ in range(2):
@@ -228,6 +246,7 @@ class Checkpoints:
         break
       except Exception:  # the failed save's error, which `save` is passing on
         continue
+    _join_orbax_threads()
     _remove_temporaries(self.root)
 
   def load(self, step: int, abstract_state: Any, *, partial: bool = False) -> tuple[Any, Any]:
