@@ -6,8 +6,9 @@ of a trajectory (nats per coordinate). Optionally the first `loss.warmup_epochs`
 train as the multiple-choice MLP does (`train.baseline.wta_loss`: the winner's ADE and
 the mode cross-entropy) plus the winner's Gaussian NLL with its mean held fixed (so the
 stds learn too): a mixture NLL from the start can let one mode take every scenario while
-the others never move (mode collapse); the winner-takes-all warm-up spreads the means
-first (MTP, CoverNet). Whether it is needed is chosen on val (configs/mdn.py).
+the others never move (mode collapse); the winner-takes-all warm-up (MTP's best-mode
+assignment) spreads the means first. On the demo data it was rejected on val: without it
+the modes keep distinct shares and the val NLL is lower (configs/mdn.py).
 
 Inputs, data loading, optimiser, train state, the val-chosen epoch (`select_metric`
 "loss" = the val mixture NLL) and the run directory are the multiple-choice baseline's
