@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install jemalloc demo test test-slow benchmark lint clean
+.PHONY: install jemalloc openmpi demo test test-slow benchmark benchmark-quality lint clean
 
 # The pinned dependencies, then this project editable (cvmdx_jax and configs importable from
 # anywhere; edits take effect without reinstalling). setuptools >= 70.1 builds it without
@@ -39,15 +39,33 @@ demo: $(STAMP)
 test: $(STAMP)
 	CVMDX_REQUIRE_SUMO=1 $(PY) -m pytest -q -n 2 -m "not slow"
 
-## Long tests (kill-and-resume, bigger configs).
+## Long tests (kill-and-resume, bigger configs, launches under mpirun).
 test-slow: $(STAMP)
+	@$(MAKE) --no-print-directory openmpi
 	CVMDX_REQUIRE_SUMO=1 $(PY) -m pytest -q -m slow
+
+# Open MPI's mpirun for the slow test of a launch by a cluster's own launcher (docs/usage.md,
+# "Several processes"): best effort, where missing and apt-get can install it (root).
+openmpi:
+	@if ! command -v mpirun >/dev/null 2>&1 && [ "$$(id -u)" = 0 ] \
+	    && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing openmpi-bin with apt-get (the mpirun launch test)"; \
+	  DEBIAN_FRONTEND=noninteractive timeout 300 apt-get install -y -q openmpi-bin \
+	    >/dev/null 2>&1 || echo "openmpi-bin not installed: the mpirun test is skipped"; \
+	fi
 
 benchmark: $(STAMP)
 	$(PY) experiments/benchmark_sampling.py
 	$(PY) experiments/benchmark.py
 	@echo "side by side with the official code: ../shared/reference_bench/README.md, then"
 	@echo "  $(PY) experiments/benchmark.py --reference_json=ours.json --official_json=official.json"
+
+## The demo's trained models on large new SUMO test sets (>= 1,000 scenarios per class on the
+## test roads and on the held-out road): proper scores, vehicle-bootstrap intervals, conformal
+## regions -> runs/quality/quality.md (docs/results.md, "Quality benchmark"). Needs make demo.
+benchmark-quality: $(STAMP)
+	$(PY) experiments/benchmark_quality.py --workdir=runs/quality --runs=runs/demo \
+	  --max_scenarios=3000
 
 ## Linter and formatter in check mode (pyproject.toml's [tool.ruff], [tool.pyink]); nothing
 ## is rewritten. To apply both: `.venv/bin/ruff check --fix . && .venv/bin/pyink .`

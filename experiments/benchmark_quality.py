@@ -12,14 +12,16 @@ class on each. Then, per trained run (a `make demo` directory with data/, tokeni
 settings (kernel bandwidths) chosen and regions calibrated on the run's own val split,
 scored on the new test and test_ood sets and on the run's val_ood. Writes
 `<workdir>/quality.md` (tables with vehicle-bootstrap intervals),
-`quality.json`, `scores_<run>_<split>.npz` (every model's per-scenario scores) and
-`region_reliability_<split>.png`.
+`quality.json`, `scores_<run>_<split>.npz` (every model's per-scenario scores, written as
+each run is scored; `--reuse` takes them instead of scoring that run again),
+`bandwidths_<run>.json` and `region_reliability_<split>.png`.
 """
 
 import json
 import time
 from pathlib import Path
 
+import numpy as np
 from absl import app, flags
 
 from configs import dataset as dataset_config
@@ -53,6 +55,13 @@ _MAX = flags.DEFINE_integer(
     "max_scenarios", 0, "Class-balanced subset per split (0 = all).", lower_bound=0
 )
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling, Monte Carlo and bootstrap seed.", lower_bound=0)
+_REUSE = flags.DEFINE_bool(
+    "reuse",
+    False,
+    "Take a run's scores from an earlier call's "
+    "scores_<run>_<split>.npz in --workdir instead of scoring it again "
+    "(runs are told apart by their directory name).",
+)
 flags.mark_flags_as_required(["workdir", "runs"])
 cli.output_dirs("workdir")
 
@@ -95,6 +104,36 @@ def _score_run(run: Path, large: dict, log):
   return quality.evaluate_run(predictor, baseline, mdn_fn, val, splits, seed=_SEED.value, log=log)
 
 
+def _save_run(workdir: Path, name: str, scores: quality.RunScores) -> None:
+  """`scores_<name>_<split>.npz` (meta + `<model>__<score>` per scenario) and
+  `bandwidths_<name>.json`, written as soon as a run is scored."""
+  files = {workdir / f"bandwidths_{name}.json": atomic.json_text(scores.bandwidths).encode()}
+  for split, data in scores.splits.items():
+    arrays = {
+        **data["meta"],
+        **{f"{m}__{k}": v for m, row in data.items() if m != "meta" for k, v in row.items()},
+    }
+    files[workdir / f"scores_{name}_{split}.npz"] = checksums.npz_bytes(**arrays)
+  checksums.write_all(files)
+
+
+def _load_run(workdir: Path, name: str) -> quality.RunScores | None:
+  """A run's saved scores (`_save_run`), or None where a file is missing."""
+  paths = [workdir / f"scores_{name}_{split}.npz" for split in SCORED]
+  if not all(p.is_file() for p in paths) or not (workdir / f"bandwidths_{name}.json").is_file():
+    return None
+  splits = {}
+  for split, path in zip(SCORED, paths):
+    with np.load(path) as z:
+      data = {"meta": {k: z[k] for k in z.files if "__" not in k}}
+      for key in (k for k in z.files if "__" in k):
+        model, score = key.split("__")
+        data.setdefault(model, {})[score] = z[key]
+    splits[split] = data
+  bandwidths = json.loads((workdir / f"bandwidths_{name}.json").read_text())
+  return quality.RunScores(bandwidths=bandwidths, levels={}, splits=splits)
+
+
 def _files(workdir: Path, runs: dict, build_s: float, seconds: dict) -> dict:
   doc = {"build_s": build_s, "seconds": seconds, "splits": {}}
   md = ["# Quality benchmark", ""]
@@ -131,13 +170,6 @@ def _files(workdir: Path, runs: dict, build_s: float, seconds: dict) -> dict:
     files[workdir / f"region_reliability_{split}.png"] = figures.plot_region_reliability(
         u, regions.HORIZONS_S, f"{next(iter(runs))}, {split}"
     )
-    for name, r in runs.items():
-      data = r.splits[split]
-      arrays = {
-          **data["meta"],
-          **{f"{m}__{k}": v for m, row in data.items() if m != "meta" for k, v in row.items()},
-      }
-      files[workdir / f"scores_{name}_{split}.npz"] = checksums.npz_bytes(**arrays)
   return files
 
 
@@ -159,8 +191,11 @@ def main(argv):
   scored, seconds = {}, {}
   for run in runs:
     start = time.time()
-    print(f"scoring {run}", flush=True)
-    scored[run.name] = _score_run(run, large, lambda m: print(m, flush=True))
+    scored[run.name] = _load_run(workdir, run.name) if _REUSE.value else None
+    if scored[run.name] is None:
+      print(f"scoring {run}", flush=True)
+      scored[run.name] = _score_run(run, large, lambda m: print(m, flush=True))
+      _save_run(workdir, run.name, scored[run.name])
     seconds[run.name] = round(time.time() - start, 1)
   checksums.write_all(_files(workdir, scored, build_s, seconds))
   print((workdir / "quality.md").read_text())

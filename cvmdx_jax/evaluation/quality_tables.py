@@ -14,6 +14,7 @@ from cvmdx_jax.evaluation import intervals, predictive, regions
 SUBSETS = ("all",) + constants.CLASS_NAMES
 LEARNED = ("mlp_heads", "mdn")
 BASELINES = ("cv", "ca") + LEARNED
+PC_MODELS = ("cvmdx_hypotheses",) + LEARNED  # K-sets with probabilities of their own
 _SUMMARY = (
     ("energy_score", "ES [m]"),
     ("nll_1s", "NLL 1 s"),
@@ -193,7 +194,7 @@ def hypothesis_set_table(runs: dict, splits) -> str:
       "|---|---|---|---|---|---|",
   ]
   first = next(iter(runs.values())).splits
-  for model in (m for m in first[splits[0]] if m != "meta" and "pc_cover" in first[splits[0]][m]):
+  for model in (m for m in first[splits[0]] if m in PC_MODELS):
     for split in splits:
       mean = lambda k: float(np.mean([value(r.splits[split][model], k) for r in runs.values()]))
       lines.append(
