@@ -34,6 +34,7 @@ from cvmdx_jax import sharding
 from cvmdx_jax.runs import layout
 from cvmdx_jax.storage import atomic, checkpointing, identity, locking
 from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.train import preemption
 
 State = Any
 Batch = dict[str, jax.Array]
@@ -95,14 +96,19 @@ def _trim_metrics(path: Path, epochs_done: int) -> None:
   atomic.write_jsonl(path, kept)
 
 
-def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int,
-                   first_step: int) -> dict[str, float]:
-  """Weighted means of per-step metrics; TrainingError at the first non-finite loss/grad."""
+def _check_finite(metrics: list[dict[str, np.ndarray]], epoch: int, first_step: int) -> None:
+  """TrainingError at the first non-finite loss or grad_norm of an epoch's step metrics."""
   for i, m in enumerate(metrics):
     for name in _FINITE_METRICS:
       if name in m and not np.isfinite(m[name]):
         raise TrainingError(f"non-finite {name}={float(m[name])} at global step "
                             f"{first_step + i} (epoch {epoch}); last good checkpoint kept")
+
+
+def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int,
+                   first_step: int) -> dict[str, float]:
+  """Weighted means of per-step metrics; TrainingError at the first non-finite loss/grad."""
+  _check_finite(metrics, epoch, first_step)
   n = weights.sum(axis=1)
   return {k: float(np.sum(n * np.array([m[k] for m in metrics], np.float64)) / n.sum())
           for k in metrics[0]}
@@ -110,6 +116,26 @@ def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, ep
 
 def _to_json_value(value: Any) -> Any:
   return np.asarray(jax.device_get(value)).tolist()
+
+
+def _epoch_order(seed: int, epoch: int, m: int, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+  """(example indices, weights), both (steps per epoch, batch_size), of 0-based `epoch`."""
+  order = np.random.default_rng([seed, epoch]).permutation(m)
+  order, weight = sharding.pad_batch(order, batch_size)
+  return order.reshape(-1, batch_size), weight.reshape(-1, batch_size)
+
+
+def _resume_point(ckpts, workdir: Path, abstract: State, run_meta: dict, steps_per_epoch: int
+                  ) -> tuple[State | None, int, list[dict]]:
+  """(state or None, global step, the step metrics of its unfinished epoch) to resume from:
+  the latest epoch checkpoint, or a later preemption checkpoint."""
+  done, state = ckpts.latest_epoch or 0, None
+  if done:
+    state, saved = ckpts.load(done, abstract)
+    identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}",
+                   CheckpointMismatchError)
+  stopped = preemption.load_stopped(workdir, abstract, run_meta, done * steps_per_epoch)
+  return stopped or (state, done * steps_per_epoch, [])
 
 
 def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], step_fn: StepFn,
@@ -148,9 +174,12 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
     ValueError: bad arguments (e.g. batch_size not divisible by the device count, or
       the workdir not held).
     sharding.ProcessMismatchError: (in every process, before anything is written) a
-      process's fingerprint, loop settings, schedule or data differ from process 0's.
+      process's fingerprint, workdir, loop settings, schedule or data differ from
+      process 0's.
     CheckpointMismatchError: the workdir's checkpoint belongs to another run or is broken.
     TrainingError: a non-finite loss or grad_norm (names the global step and epoch).
+    preemption.Stopped: SIGTERM or SIGINT arrived; the state at the next step boundary
+      is saved (module docstring); exits with status 143 or 130.
   """
   if not locking.is_held(workdir):
     raise ValueError(f"train: workdir {workdir} is not held; call train inside "
@@ -165,56 +194,105 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
               "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m}}
   if jax.process_count() > 1:  # every process must run the same job on the same data
     sharding.check_same_run({**run_meta, "data": identity.content_id(data),
+                             "workdir": str(Path(workdir).resolve()),
                              "schedule": [num_epochs, checkpoint_every, keep]},
                             f"run (workdir {workdir})")
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  steps_per_epoch = -(-m // batch_size)
-  root_key = jax.random.key(seed)
+  run = _Run(workdir, init_fn, step_fn, {k: np.asarray(v) for k, v in data.items()},
+             batch_size, seed, run_meta, mesh)
+  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts, \
+       preemption.Signals() as signals:
+    state, start, metrics = run.start(ckpts, abstract, on_start)
+    with preemption.PeerWatch(workdir / layout.CHECKPOINTS) as watch:
+      try:
+        state = run.epochs(state, start, metrics, num_epochs, ckpts, signals,
+                           checkpoint_every, epoch_end_fn, desc)
+      except Exception as e:  # with several processes a dead peer ends this one here
+        watch.settle(e)
+        raise
+  if signals.received is not None:  # arrived during the last save: stop as asked
+    raise signals.stopped(f"the run finished ({num_epochs} epochs)")
+  return sharding.local_copy(state)
 
-  def keyed_step(state, batch, global_step):
-    return step_fn(state, batch, jax.random.fold_in(root_key, global_step))
 
-  step = jax.jit(keyed_step, donate_argnums=0)
-  data = {k: np.asarray(v) for k, v in data.items()}
-  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts:
-    done = ckpts.latest_epoch or 0
-    if done:
-      state, saved = ckpts.load(done, abstract)
-      identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}",
-                         CheckpointMismatchError)
-    else:
-      state = jax.jit(init_fn, out_shardings=sharding.replicated(mesh))(init_key(seed))
+class _Run:
+  """The fixed parts of one `train` call and its two phases: `start` and `epochs`."""
+
+  def __init__(self, workdir: Path, init_fn, step_fn: StepFn, data: dict[str, np.ndarray],
+               batch_size: int, seed: int, run_meta: dict, mesh):
+    self.workdir, self.init_fn, self.data, self.mesh = workdir, init_fn, data, mesh
+    self.batch_size, self.seed, self.run_meta = batch_size, seed, run_meta
+    self.m = next(iter(data.values())).shape[0]
+    self.steps_per_epoch = -(-self.m // batch_size)
+    root_key = jax.random.key(seed)
+
+    def keyed_step(state, batch, global_step):
+      return step_fn(state, batch, jax.random.fold_in(root_key, global_step))
+
+    self.step = jax.jit(keyed_step, donate_argnums=0)
+
+  def start(self, ckpts, abstract: State, on_start) -> tuple[State, int, list[dict]]:
+    """(state, global step, step metrics of the unfinished epoch) to go on from."""
+    state, start, metrics = _resume_point(ckpts, self.workdir, abstract, self.run_meta,
+                                          self.steps_per_epoch)
+    if state is None:
+      state = jax.jit(self.init_fn, out_shardings=sharding.replicated(self.mesh))(
+          init_key(self.seed))
     if on_start is not None:
       on_start()
-    primary = sharding.is_primary()
-    if primary:
-      _trim_metrics(workdir / layout.METRICS, done)
-    with tqdm(total=num_epochs * steps_per_epoch, initial=min(done, num_epochs) * steps_per_epoch,
-              desc=desc, unit="step", dynamic_ncols=True, disable=not primary) as bar:
-      for epoch in range(done, num_epochs):
-        start, first_step = time.perf_counter(), epoch * steps_per_epoch
-        order = np.random.default_rng([seed, epoch]).permutation(m)
-        order, weight = sharding.pad_batch(order, batch_size)
-        order = order.reshape(steps_per_epoch, batch_size)
-        weight = weight.reshape(steps_per_epoch, batch_size)
-        metrics = []
-        for i in range(steps_per_epoch):
-          batch = {k: v[order[i]] for k, v in data.items()}
+    if sharding.is_primary():
+      _trim_metrics(self.workdir / layout.METRICS, start // self.steps_per_epoch)
+    return state, start, metrics
+
+  def epochs(self, state: State, start: int, metrics: list, num_epochs: int, ckpts,
+             signals: preemption.Signals, checkpoint_every: int, epoch_end_fn, desc: str
+             ) -> State:
+    """Runs the epochs from global step `start` to `num_epochs`; `metrics` holds the step
+    metrics of `start`'s epoch before `start`."""
+    spe, primary = self.steps_per_epoch, sharding.is_primary()
+    saved = (ckpts.latest_epoch or 0) * spe  # the global step of the newest checkpoint
+    with tqdm(total=num_epochs * spe, initial=min(start, num_epochs * spe), desc=desc,
+              unit="step", dynamic_ncols=True, disable=not primary) as bar:
+      for epoch in range(start // spe, num_epochs):
+        begin, first_step = time.perf_counter(), epoch * spe
+        order, weight = _epoch_order(self.seed, epoch, self.m, self.batch_size)
+        for i in range(max(start - first_step, 0), spe):
+          if signals.stop_at(first_step + i):
+            raise self._stop(signals, first_step + i, saved, state, metrics)
+          batch = {k: v[order[i]] for k, v in self.data.items()}
           batch["weight"] = weight[i]
-          state, step_metrics = step(state, sharding.shard_batch(batch, mesh), first_step + i)
+          state, step_metrics = self.step(state, sharding.shard_batch(batch, self.mesh),
+                                          first_step + i)
           metrics.append(step_metrics)
           bar.update()
         summary = _epoch_summary(jax.device_get(metrics), weight, epoch + 1, first_step)
+        metrics = []
         if epoch_end_fn is not None:
           summary.update({k: _to_json_value(v)
                           for k, v in epoch_end_fn(sharding.local_copy(state), epoch + 1).items()})
         bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
-        line = {"epoch": epoch + 1, "step": first_step + steps_per_epoch,
-                "seconds": round(time.perf_counter() - start, 4), **summary}
+        line = {"epoch": epoch + 1, "step": first_step + spe,
+                "seconds": round(time.perf_counter() - begin, 4), **summary}
         if primary:
-          atomic.append_jsonl(workdir / layout.METRICS, line)
+          atomic.append_jsonl(self.workdir / layout.METRICS, line)
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
-          ckpts.save(epoch + 1, state, run_meta)
-  return sharding.local_copy(state)
+          ckpts.save(epoch + 1, state, self.run_meta)
+          saved = first_step + spe
+          preemption.drop_stopped(self.workdir)
+    return state
 
+  def _stop(self, signals: preemption.Signals, step: int, saved: int, state: State,
+            metrics: list) -> preemption.Stopped:
+    """Saves the state before global `step` (unless a checkpoint holds it already) and
+    returns the `Stopped` to raise."""
+    spe = self.steps_per_epoch
+    if step != saved:
+      host_metrics = jax.device_get(metrics)
+      _check_finite(host_metrics, step // spe + 1, step // spe * spe)
+      preemption.save_stopped(self.workdir, step, state, self.run_meta, host_metrics)
+      where = f"saved global step {step} (epoch {step // spe + 1}, step {step % spe + 1}) " \
+              f"in {self.workdir / preemption.STOPPED}"
+    else:
+      where = f"the last checkpoint holds global step {step}"
+    return signals.stopped(where)
