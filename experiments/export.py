@@ -5,7 +5,8 @@ artefacts that run with JAX alone, without this package.
       --diffusion_dir=runs/demo/student_progressive_2 --out=runs/demo/export
 
 writes <out>/predict.jax (the whole prediction), <out>/denoiser.jax (one denoiser
-evaluation), <out>/manifest.json and <out>/checksums.json (`cvmdx_jax.inference.export`);
+evaluation), <out>/manifest.json and <out>/checksums.json (`cvmdx_jax.inference.export`),
+with --onnx also <out>/denoiser.onnx;
 `--num_samples` / `--sampler` / `--steps` override the run's sampling settings, which are
 baked into predict.jax. experiments/run_exported.py loads and runs them with JAX alone.
 """
@@ -28,6 +29,11 @@ _SAMPLER = flags.DEFINE_enum("sampler", None, list(sampling.SAMPLERS),
                              "Sampler instead of the run's.")
 _STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.",
                               lower_bound=1)
+_NOISE_IDS = flags.DEFINE_integer("num_noise_ids", 1, "K of predict.jax's noise_ids input "
+                                  "(b, K): 1 = the scenario's position (Predictor's default), "
+                                  "2 = (frame, track id) as inference.stream.", lower_bound=1)
+_ONNX = flags.DEFINE_bool("onnx", False, "Also write denoiser.onnx (needs jax2onnx: pip "
+                          "install --no-deps -r requirements-onnx.lock).")
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "out"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir")
 cli.output_dirs("out")
@@ -42,8 +48,9 @@ def main(argv):
   if overrides:  # a replaced Predictor re-checks the sampler against the denoiser
     predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
         predictor.sampling, **overrides))
-  meta = export.export(predictor, _OUT.value)
-  print(f"wrote {_OUT.value}: {export.PREDICT_FILE}, {export.DENOISER_FILE}, "
+  meta = export.export(predictor, _OUT.value, num_noise_ids=_NOISE_IDS.value, onnx=_ONNX.value)
+  onnx = f", {export.ONNX_FILE}" if _ONNX.value else ""
+  print(f"wrote {_OUT.value}: {export.PREDICT_FILE}, {export.DENOISER_FILE}{onnx}, "
         f"{export.MANIFEST_FILE} (sampling {meta['sampling']['sampler']}, "
         f"{meta['sampling']['steps']} steps, {meta['sampling']['num_samples']} samples)")
 

@@ -1,7 +1,8 @@
 """Serialised `jax.export` artefacts of a `Predictor`: the model outside this package.
 
-`export(predictor, out_dir)` writes three files (one group, `storage.checksums.write_all`:
-all new or all old, listed with their sha256 in `checksums.json`):
+`export(predictor, out_dir)` writes three files, four with `onnx` (one group,
+`storage.checksums.write_all`: all new or all old, listed with their sha256 in
+`checksums.json`):
 
     predict.jax      the whole prediction: tokeniser, sampler, vehicle motion model and
                      hypotheses, `predict_fn` (inputs and outputs: `predict_inputs`,
@@ -9,6 +10,9 @@ all new or all old, listed with their sha256 in `checksums.json`):
     denoiser.jax     one evaluation of the denoiser v(x_t, t, q[, cond]), `denoiser_fn`
     manifest.json    names, shapes ("b" the symbolic batch) and dtypes of both, the sampling
                      settings, the runs the parameters come from, the delta limit
+    denoiser.onnx    with `onnx=True`: the same denoiser as ONNX (opset 23, by jax2onnx, an
+                     optional dependency: requirements-onnx.lock), dynamic batch "b"; the
+                     solver and its steps stay outside (the manifest's sampling settings)
 
 Each artefact is `jax.export.export(jax.jit(f))` over a symbolic batch dimension b, so one
 file serves any batch size; the parameters (the denoiser's prepared as `Predictor` applies
@@ -37,11 +41,14 @@ import numpy as np
 
 from cvmdx_jax import constants, ego_motion
 from cvmdx_jax.diffusion import cosine_schedule
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import predictor as predictor_lib
+from cvmdx_jax.models import performance
 from cvmdx_jax.storage import atomic, checksums, identity
 
 PREDICT_FILE = "predict.jax"
 DENOISER_FILE = "denoiser.jax"
+ONNX_FILE = "denoiser.onnx"
 MANIFEST_FILE = "manifest.json"
 FORMAT_VERSION = 1
 BATCH = "b"  # the symbolic batch dimension's name in shapes and the manifest
@@ -188,19 +195,42 @@ def _plain(value):
   return value
 
 
+def onnx_bytes(predictor: predictor_lib.Predictor) -> bytes:
+  """`denoiser_fn` as an ONNX model with a dynamic batch. jax2onnx has no lowering of
+  `lax.platform_dependent`, so the U-Net's paths are fixed while it traces: the Winograd
+  convolutions that `Predictor` runs on a CPU (its prepared kernels), the plain group norm
+  (the fast one differs only in the backward pass)."""
+  try:
+    import jax2onnx  # optional: pip install --no-deps -r requirements-onnx.lock
+  except ImportError as e:
+    raise UserError("the ONNX export needs jax2onnx and onnx: pip install --no-deps -r "
+                    f"requirements-onnx.lock ({e})") from e
+  inputs = denoiser_inputs(predictor)
+  batch, = jax.export.symbolic_shape(BATCH)
+  with performance.use(performance.PerformanceOptions(winograd="on", group_norm_backward="off")):
+    model = jax2onnx.to_onnx(denoiser_fn(predictor), _abstract(inputs, batch),
+                             model_name="cvmdx_denoiser", input_names=[n for n, _, _ in inputs],
+                             output_names=["v"])
+  return model.SerializeToString()
+
+
 def export(predictor: predictor_lib.Predictor, out_dir: str | os.PathLike,
-           num_noise_ids: int = 1) -> dict:
-  """Writes predict.jax, denoiser.jax and manifest.json to `out_dir` (created); returns the
-  manifest. num_noise_ids: K of the noise_ids input (1: `Predictor`'s default ids)."""
+           num_noise_ids: int = 1, onnx: bool = False) -> dict:
+  """Writes predict.jax, denoiser.jax, manifest.json (and denoiser.onnx) to `out_dir`
+  (created); returns the manifest. num_noise_ids: K of the noise_ids input (1:
+  `Predictor`'s default ids)."""
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
+  files = {out / ONNX_FILE: onnx_bytes(predictor)} if onnx else {}
   inputs = predict_inputs(num_noise_ids)
   predict_bytes, predict_outputs = export_bytes(predict_fn(predictor), inputs)
   denoiser_bytes, denoiser_outputs = export_bytes(denoiser_fn(predictor),
                                                   denoiser_inputs(predictor))
   meta = manifest(predictor, inputs, predict_outputs, denoiser_outputs)
+  if onnx:
+    meta["denoiser"]["onnx_file"] = ONNX_FILE
   checksums.write_all({out / PREDICT_FILE: predict_bytes, out / DENOISER_FILE: denoiser_bytes,
-                       out / MANIFEST_FILE: atomic.json_text(meta).encode()})
+                       **files, out / MANIFEST_FILE: atomic.json_text(meta).encode()})
   return meta
 
 

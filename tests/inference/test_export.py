@@ -26,7 +26,7 @@ from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import uncertainty, unet1d
-from cvmdx_jax.storage.checksums import CorruptRunError
+from cvmdx_jax.storage import checksums
 from tests import subprocess_env
 
 SCRIPT = subprocess_env.REPO / "experiments" / "run_exported.py"
@@ -124,7 +124,7 @@ def test_manifest_names_the_symbolic_batch_and_a_corrupt_file_is_refused(exporte
   data = bytearray((copy / export.PREDICT_FILE).read_bytes())
   data[len(data) // 2] ^= 1
   (copy / export.PREDICT_FILE).write_bytes(bytes(data))
-  with pytest.raises(CorruptRunError, match="predict.jax"):
+  with pytest.raises(checksums.CorruptRunError, match="predict.jax"):
     export.load(copy)
 
 
@@ -165,3 +165,25 @@ def test_standalone_loader_runs_without_the_package(exported, tmp_path):
                        env=subprocess_env.environ(JAX_PLATFORMS="cpu"), cwd=tmp_path)
   assert bad.returncode == 2 and "field 'psi0' missing" in bad.stderr.strip().splitlines()[-1]
   assert not (tmp_path / "bad_pred.npz").exists()
+
+
+@pytest.mark.slow  # jax2onnx converts the U-Net equation by equation (~30 s)
+def test_onnx_denoiser_equals_the_package_in_onnx_runtime(tmp_path):
+  pytest.importorskip("jax2onnx", reason="optional: pip install --no-deps -r "
+                      "requirements-onnx.lock")
+  ort = pytest.importorskip("onnxruntime")
+  predictor = _random_predictor()
+  meta = export.export(predictor, tmp_path, onnx=True)
+  assert meta["denoiser"]["onnx_file"] == export.ONNX_FILE
+  session = ort.InferenceSession(checksums.read_bytes(tmp_path / export.ONNX_FILE))
+  assert [i.name for i in session.get_inputs()] == ["x_t", "t", "q", "cond"]
+  rng = np.random.default_rng(3)
+  cond_dim = predictor.denoiser.unet.cond_dim
+  for b in (4, 1):  # one model, two batch sizes
+    feed = {"x_t": rng.normal(size=(b, constants.T_PRED, 2)).astype(np.float32),
+            "t": rng.integers(0, 1000, b).astype(np.int32),
+            "q": rng.integers(0, 3, b).astype(np.int32),
+            "cond": rng.normal(size=(b, cond_dim)).astype(np.float32)}
+    got = session.run(None, feed)[0]
+    want = jax.jit(predictor.denoiser.apply)(*feed.values())
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
