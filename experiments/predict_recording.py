@@ -23,6 +23,7 @@ import re
 import subprocess
 from pathlib import Path
 
+import numpy as np
 from absl import app, flags
 
 import cvmdx_jax
@@ -30,6 +31,7 @@ from cvmdx_jax import cli, constants
 from cvmdx_jax.data import frames as frames_lib
 from cvmdx_jax.data import highd
 from cvmdx_jax.errors import UserError
+from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.inference import recording
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.storage import atomic, checksums, identity
@@ -90,6 +92,21 @@ def _frame(flag, value: str | None, first: int, last: int, default: int) -> int:
   return frame
 
 
+def _accuracy(preds, rec, frames) -> dict:
+  """ADE / FDE (m) of the hypothesis-weighted mean and minADE / minFDE over the hypotheses,
+  over the predictions whose 5 s after t0 the recording holds."""
+  future, known = frames_lib.futures(rec, frames_lib.observable_rows(rec, frames))
+  if not known.any():
+    return {"count": 0}
+  gt, hyps, valid = future[known], preds.means[known], preds.probs[known] > 0
+  mean = preds.weighted_mean[known]
+  values = {"ade": metrics.ade(mean, gt), "fde": metrics.fde(mean, gt),
+            "min_ade": metrics.min_ade_k(hyps, gt, valid),
+            "min_fde": metrics.min_fde_k(hyps, gt, valid)}
+  return {"count": int(known.sum()), **{k: round(float(np.mean(v)), 4)
+                                        for k, v in values.items()}}
+
+
 def _code_version() -> dict:
   try:
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -135,6 +152,7 @@ def main(argv):
         predictor.sampling, num_samples=_NUM_SAMPLES.value))
   preds, summary = recording.predict_frames(predictor, rec, frames, seed=_SEED.value,
                                             samples=_SAMPLES.value, every=_EVERY.value)
+  summary["accuracy"] = _accuracy(preds, rec, frames)
   table = recording.table(preds)
   recording.write_table(table, _OUT.value)
   if _ANIMATION.value:

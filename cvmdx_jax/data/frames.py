@@ -3,8 +3,9 @@
 The highD reader (`data.highd.read_recording`) validates the recording and moves it to each
 direction's road frame; `extract.observed` builds xi / mask / v0 / psi0 exactly as the
 dataset's windows (same neighbour slots, frame and units), so an observation made here at
-a (track, frame) equals the reader's scenario there. SUMO recordings are written in highD
-format (`data.sumo_export`) and read the same way.
+a (track, frame) equals the reader's scenario there (`inference.observations.from_recording`
+makes `Observations` of them). SUMO recordings are written in highD format
+(`data.sumo_export`) and read the same way.
 
 A vehicle can be observed at frame f when its track holds the 75 frames f - 74 .. f
 (3 s of history at 25 Hz).
@@ -16,7 +17,6 @@ import pandas as pd
 from cvmdx_jax import constants
 from cvmdx_jax.data import extract, highd
 from cvmdx_jax.data.errors import DataError
-from cvmdx_jax.inference import observations as obs_lib
 
 HISTORY = constants.T_OBS - 1  # rows of a track needed before t0
 
@@ -60,19 +60,19 @@ def row_of(rec: highd.Recording, track_id: int, frame: int) -> int:
   return int(rec.first_row[track_id] + frame - start)
 
 
-def observations(rec: highd.Recording, rows: np.ndarray) -> obs_lib.Observations:
-  """Observations of the ego rows `rows` (N,) (each with 3 s of history: `row_of`,
-  `observable_rows`), with their image-frame origin and driving direction."""
+def observed(rec: highd.Recording, rows: np.ndarray) -> dict:
+  """`extract.observed` of the ego rows `rows` (N,) (each with 3 s of history: `row_of`,
+  `observable_rows`) plus 'origin' (N, 2), their image-frame centres, and 'direction' (N,),
+  their drivingDirection."""
   rows = np.asarray(rows, np.int64)
-  return obs_lib.from_arrays(**extract.observed(rec, rows), origin=image_centre(rec, rows),
-                             direction=rec.direction[rows])
+  return {**extract.observed(rec, rows), "origin": image_centre(rec, rows),
+          "direction": rec.direction[rows]}
 
 
-def observe(rec: highd.Recording, track_ids, frames) -> obs_lib.Observations:
-  """Observations of the vehicles `track_ids` (N,) at `frames` (N,); DataError as
-  `row_of`."""
-  rows = [row_of(rec, int(t), int(f)) for t, f in zip(np.ravel(track_ids), np.ravel(frames))]
-  return observations(rec, np.asarray(rows, np.int64))
+def rows_of(rec: highd.Recording, track_ids, frames) -> np.ndarray:
+  """(N,) rows of the vehicles `track_ids` (N,) at `frames` (N,); DataError as `row_of`."""
+  return np.array([row_of(rec, int(t), int(f))
+                   for t, f in zip(np.ravel(track_ids), np.ravel(frames))], np.int64)
 
 
 def futures(rec: highd.Recording, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

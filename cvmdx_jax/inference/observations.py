@@ -1,7 +1,7 @@
 """`Observations`: a prediction input holding only what is known at t0 (no futures).
 
 `Scenarios` stays the training and evaluation contract; `from_scenarios` projects one onto
-its observed part. Observations built from raw tracks (`data.frames`, `inference.stream`)
+its observed part. Observations built from raw tracks (`from_recording`, `inference.stream`)
 also carry where the scenario frame lies in the recording's image frame, so predictions
 can be drawn over highD's background image (`to_image`).
 
@@ -17,6 +17,7 @@ import dataclasses
 import numpy as np
 
 from cvmdx_jax import constants
+from cvmdx_jax.data import frames
 from cvmdx_jax.data.scenarios import FIELDS as SCENARIO_FIELDS
 from cvmdx_jax.data.scenarios import Scenarios
 
@@ -57,13 +58,6 @@ class Observations:
 
   def __len__(self) -> int:
     return int(np.shape(self.v0)[0])
-
-  def as_dict(self) -> dict:
-    return {name: getattr(self, name) for name in FIELDS}
-
-  def take(self, index) -> "Observations":
-    """The observations at `index` (an int array, slice or boolean mask)."""
-    return Observations(**{k: np.asarray(v)[index] for k, v in self.as_dict().items()})
 
   def validate(self, source: str = "observations", fields=tuple(FIELDS), *,
                dtypes: bool = True, allow_empty: bool = True) -> "Observations":
@@ -113,18 +107,15 @@ def from_scenarios(scenarios: Scenarios) -> Observations:
   return from_arrays(**{k: v for k, v in scenarios.as_dict().items() if k in FIELDS})
 
 
+def from_recording(rec, rows) -> Observations:
+  """Observations of the ego rows `rows` (N,) of a `data.highd.Recording`, each with 3 s of
+  history (`data.frames.observable_rows`, `data.frames.rows_of`), with their image frame."""
+  return from_arrays(**frames.observed(rec, rows))
+
+
 def as_observations(inputs: Scenarios | Observations) -> Observations:
   """`inputs` as Observations (a `Scenarios` projected by `from_scenarios`)."""
   return from_scenarios(inputs) if isinstance(inputs, Scenarios) else inputs
-
-
-def concatenate(parts) -> Observations:
-  """Concatenates a sequence of `Observations` along M."""
-  parts = list(parts)
-  if not parts:
-    raise ValueError("concatenate: empty sequence of Observations")
-  return Observations(**{name: np.concatenate([getattr(p, name) for p in parts])
-                         for name in FIELDS})
 
 
 def image_sign(direction) -> np.ndarray:

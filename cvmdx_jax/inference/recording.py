@@ -1,5 +1,5 @@
-"""Predictions of vehicles in a recording's image frame: the tidy table, temporal
-consistency and accuracy where the future is known.
+"""Predictions of vehicles in a recording's image frame: the tidy table and temporal
+consistency.
 
 `predict` runs a `Predictor` on `Observations` with each vehicle's noise drawn from
 (frame, track id), so a vehicle's prediction at a frame does not depend on which other
@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from tqdm import tqdm
 
 from cvmdx_jax.data import frames as frames_lib
-from cvmdx_jax.evaluation import metrics
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import observations as obs_lib
 from cvmdx_jax.storage import atomic
 
@@ -53,10 +54,12 @@ class VehiclePredictions:
     """(M, 125, 2) the hypothesis-weighted mean trajectory, sum_c p_c mean_c."""
     return np.einsum("mc,mctd->mtd", self.probs, self.means)
 
-  def take(self, index) -> "VehiclePredictions":
-    return VehiclePredictions(**{f.name: None if getattr(self, f.name) is None
-                                 else getattr(self, f.name)[index]
-                                 for f in dataclasses.fields(self)})
+
+def concatenate(parts) -> VehiclePredictions:
+  """`VehiclePredictions` of a sequence of them, along M."""
+  return VehiclePredictions(**{f.name: None if getattr(parts[0], f.name) is None
+                               else np.concatenate([getattr(p, f.name) for p in parts])
+                               for f in dataclasses.fields(VehiclePredictions)})
 
 
 def noise_ids(observations: obs_lib.Observations) -> np.ndarray:
@@ -103,16 +106,16 @@ def _rows(preds, kind: str, paths: np.ndarray, probs: np.ndarray) -> pd.DataFram
 
 
 def check_table_path(path) -> None:
-  """ValueError naming `path` unless it ends in .parquet (with pyarrow importable) or
+  """UserError naming `path` unless it ends in .parquet (with pyarrow importable) or
   .csv.gz."""
   name = str(path)
   if not name.endswith(TABLE_FORMATS):
-    raise ValueError(f"--out={name}: expected a file ending in {' or '.join(TABLE_FORMATS)}")
+    raise UserError(f"--out={name}: expected a file ending in {' or '.join(TABLE_FORMATS)}")
   if name.endswith(".parquet"):
     try:
       import pyarrow  # noqa: F401  (optional: Parquet only where it is installed)
     except ImportError as err:
-      raise ValueError(f"--out={name}: Parquet needs pyarrow, which is not installed; "
+      raise UserError(f"--out={name}: Parquet needs pyarrow, which is not installed; "
                        "write .csv.gz") from err
 
 
@@ -147,42 +150,33 @@ def temporal_consistency(preds: VehiclePredictions, step: int) -> np.ndarray:
   return change.mean(-1)
 
 
-def accuracy(preds: VehiclePredictions, future: np.ndarray, known: np.ndarray) -> dict:
-  """ADE / FDE (m) of the hypothesis-weighted mean and minADE / minFDE over the hypotheses
-  against the recorded `future` (M, 125, 2) image frame, over the `known` (M,) ones."""
-  if not known.any():
-    return {"count": 0}
-  gt, hyps, valid = future[known], preds.means[known], preds.probs[known] > 0
-  mean = preds.weighted_mean[known]
-  values = {"ade": metrics.ade(mean, gt), "fde": metrics.fde(mean, gt),
-            "min_ade": metrics.min_ade_k(hyps, gt, valid),
-            "min_fde": metrics.min_fde_k(hyps, gt, valid)}
-  return {"count": int(known.sum()), **{k: float(np.mean(v)) for k, v in values.items()}}
-
-
 def predict_frames(predictor, rec, frames, seed: int = 0, samples: bool = False,
                    every: int | None = None) -> tuple[VehiclePredictions, dict]:
   """Every vehicle with 3 s of history at each of `frames` of recording `rec`
-  (`data.highd.Recording`), in batches of `predictor.chunk_size` over vehicles and frames.
+  (`data.highd.Recording`), in batches of `predictor.chunk_size` over vehicles and frames
+  (observations built per batch; only the hypotheses, and the samples if asked, are kept).
 
   Returns:
     (predictions, summary): summary = {"predictions", "vehicles", "frames", "seconds",
-    "predictions_per_second", "out_of_distribution", "accuracy" (`accuracy` where the
-    recording holds the 5 s after t0), "consistency_m" (mean and median of
-    `temporal_consistency` at `every` frames, where 0 < every < 125)}.
+    "predictions_per_second", "out_of_distribution", "consistency_m" (mean and median of
+    `temporal_consistency` at `every` frames, where 0 < every < 125)}; the predictions are
+    in the order of `data.frames.observable_rows`.
   """
   rows = frames_lib.observable_rows(rec, frames)
   if len(rows) == 0:
-    raise ValueError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
-  observed = frames_lib.observations(rec, rows)
+    raise UserError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
+  block = predictor.chunk_size  # one jitted call each: memory bounded by the samples of one
   start = time.perf_counter()
-  preds = predict(predictor, observed, seed=seed, samples=samples)
+  parts = [predict(predictor, obs_lib.from_recording(rec, rows[i:i + block]), seed=seed,
+                   samples=samples)
+           for i in tqdm(range(0, len(rows), block), desc="predict", unit="chunk",
+                         disable=len(rows) <= block)]
+  preds = concatenate(parts)
   seconds = time.perf_counter() - start
   summary = {"predictions": len(preds), "vehicles": int(len(np.unique(preds.track_id))),
              "frames": int(len(np.unique(preds.frame))), "seconds": round(seconds, 3),
              "predictions_per_second": round(len(preds) / seconds, 2),
-             "out_of_distribution": int(preds.out_of_distribution.sum()),
-             "accuracy": accuracy(preds, *frames_lib.futures(rec, rows))}
+             "out_of_distribution": int(preds.out_of_distribution.sum())}
   if every is not None and 0 < every < preds.means.shape[2]:
     change = temporal_consistency(preds, every)
     summary["consistency_m"] = {"pairs": len(change),

@@ -14,7 +14,7 @@ in the last frame: a vehicle missing from a frame is dropped (its history starts
 it reappears), and a gap in the frame numbers starts every history again. Memory is
 O(vehicles x 75).
 
-The observations equal `data.frames.observations` of a recording fed frame by frame (same
+The observations equal `observations.from_recording` of a recording fed frame by frame (same
 road frame, neighbours and masks), and each vehicle draws its noise from (frame, track id)
 like `recording.predict`: the predictions equal a whole recording's at the same frames.
 """

@@ -20,9 +20,9 @@ def test_observation_at_a_readers_window_equals_its_scenario(tmp_path, rec):
   scenarios = highd.load_scenarios(tmp_path, [1], config)
   # both directions, lane changes and keep lane, a neighbour that appears mid-history
   assert set(scenarios.track_id) == {1, 2, 3, 4, 5} and len(set(scenarios.label)) == 3
-  observed = frames.observe(rec, scenarios.track_id, scenarios.frame)
+  observed = frames.observed(rec, frames.rows_of(rec, scenarios.track_id, scenarios.frame))
   for name in ("xi", "mask", "v0", "psi0", "track_id", "frame", "recording_id"):
-    np.testing.assert_array_equal(getattr(observed, name), getattr(scenarios, name), name)
+    np.testing.assert_array_equal(observed[name], getattr(scenarios, name), name)
 
 
 def test_origin_and_futures_are_the_csv_centres(tmp_path, rec):
@@ -31,10 +31,10 @@ def test_origin_and_futures_are_the_csv_centres(tmp_path, rec):
             tracks[["id", "frame", "x", "y"]].itertuples(index=False)}
   rows = np.array([frames.row_of(rec, 1, 100), frames.row_of(rec, 3, 200),
                    frames.row_of(rec, 4, 250)])
-  observed = frames.observations(rec, rows)
-  np.testing.assert_allclose(observed.origin, [centre[(1, 100)], centre[(3, 200)],
+  observed = frames.observed(rec, rows)
+  np.testing.assert_allclose(observed["origin"], [centre[(1, 100)], centre[(3, 200)],
                                                centre[(4, 250)]], atol=1e-9)
-  np.testing.assert_array_equal(observed.direction, [2, 1, 1])
+  np.testing.assert_array_equal(observed["direction"], [2, 1, 1])
   future, known = frames.futures(rec, rows)
   np.testing.assert_array_equal(known, [True, False, False])  # 300 - 200 < 125 frames
   expected = [centre[(1, f)] for f in range(101, 226)]

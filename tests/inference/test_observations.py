@@ -18,7 +18,7 @@ def test_a_true_future_mapped_to_the_image_lands_on_the_recorded_centres(tmp_pat
   for track, frame in ((1, 120), (3, 100), (4, 80), (2, 150)):
     row = frames.row_of(rec, track, frame)
     future = extract.windows(rec, np.array([row]))["future"]  # the reader's scenario frame
-    image = obs_lib.to_image(frames.observations(rec, np.array([row])), future)[0]
+    image = obs_lib.to_image(obs_lib.from_recording(rec, np.array([row])), future)[0]
     recorded = tracks.loc[[(track, f) for f in range(frame + 1, frame + 126)]]
     expected = np.stack([recorded["x"] + 2.0, recorded["y"] + 1.0], -1)  # 4 m x 2 m boxes
     np.testing.assert_allclose(image, expected, atol=1e-4)  # float32 futures of ~400 m

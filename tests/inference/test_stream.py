@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.data import frames, highd
+from cvmdx_jax.inference import observations as obs_lib
 from cvmdx_jax.inference import recording, stream
 from tests.data.conftest import write_recording
 from tests.inference.test_retrace import _random_predictor
@@ -32,8 +33,8 @@ def test_stream_observations_equal_the_recordings(rec):
   for frame in range(1, 301):
     history = stream.update(history, frame, *_frame_input(rec, frame))
     assert history.pos.shape[1] == 75 and len(history.track_id) == np.sum(rec.frame == frame)
-    expected = frames.observations(rec, frames.observable_rows(rec, [frame])) if frame >= 75 \
-        else None
+    rows = frames.observable_rows(rec, [frame])
+    expected = obs_lib.from_recording(rec, rows) if frame >= 75 else None
     got = stream.observations(history, recording_id=1)
     if expected is None:
       assert len(got) == 0
