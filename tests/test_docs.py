@@ -156,13 +156,14 @@ def path_missing(word: str) -> str | None:
 
 @functools.cache
 def script_flags(script: pathlib.Path) -> set[str]:
-  """Flag names a script defines (`flags.DEFINE_*("name", ...)`, config flags)."""
+  """Flag names a script defines (absl `flags.DEFINE_*("name", ...)`, config flags, or
+  argparse `add_argument("--name", ...)`)."""
   names = {"help", "helpfull", "helpshort"}
   for node in ast.walk(ast.parse(script.read_text())):
     if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-        and node.func.attr.startswith("DEFINE") and node.args
-        and isinstance(node.args[0], ast.Constant)):
-      names.add(node.args[0].value)
+        and (node.func.attr.startswith("DEFINE") or node.func.attr == "add_argument")
+        and node.args and isinstance(node.args[0], ast.Constant)):
+      names.add(str(node.args[0].value).removeprefix("--"))
   return names
 
 
@@ -242,3 +243,12 @@ def test_every_name_a_document_mentions_exists(document):
     pytest.skip(f"{document} is not in this checkout")
   found = problems(document)
   assert not found, f"{len(found)} missing:\n" + "\n".join(found)
+
+
+def test_script_flags_reads_absl_and_argparse_definitions(tmp_path):
+  script = tmp_path / "s.py"
+  script.write_text('flags.DEFINE_string("workdir", None, "")\n'
+                    'config_flags.DEFINE_config_file("config")\n'
+                    'parser.add_argument("--export_dir", required=True)\n')
+  assert script_flags(script) >= {"workdir", "config", "export_dir", "help"}
+  assert "required" not in script_flags(script)
