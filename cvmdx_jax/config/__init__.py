@@ -13,6 +13,3 @@
 Nothing here imports model, training or inference code: the models import their configs
 from here, so this package sits below every other one.
 """
-
-
-

@@ -5,8 +5,7 @@ import dataclasses
 from typing import ClassVar
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.config.fields import BELOW_ONE, ConfigFieldError, POSITIVE, check_ranges
-
+from cvmdx_jax.config.fields import BELOW_ONE, POSITIVE, ConfigFieldError, check_ranges
 
 PAPER_SCALE = (constants.ACCEL_SCALE, constants.YAW_RATE_SCALE)
 
@@ -40,21 +39,31 @@ class DenoiserConfig:
   guidance_input: bool = False
   intent_conditioning: bool = False
 
-  RANGES: ClassVar = {"num_steps": POSITIVE, "cond_drop_prob": BELOW_ONE,
-                      "control_scale": POSITIVE, "residual_decay_s": POSITIVE,
-                      "class_weights": POSITIVE}
+  RANGES: ClassVar = {
+      "num_steps": POSITIVE,
+      "cond_drop_prob": BELOW_ONE,
+      "control_scale": POSITIVE,
+      "residual_decay_s": POSITIVE,
+      "class_weights": POSITIVE,
+  }
 
   def __post_init__(self):
     check_ranges(self, self.RANGES)
     if len(self.class_weights) != constants.NUM_CLASSES:
-      raise ConfigFieldError("class_weights", self.class_weights,
-                             f"need {constants.NUM_CLASSES} positive finite weights, one per "
-                             f"class {constants.CLASS_NAMES}")
+      raise ConfigFieldError(
+          "class_weights",
+          self.class_weights,
+          f"need {constants.NUM_CLASSES} positive finite weights, one per "
+          f"class {constants.CLASS_NAMES}",
+      )
     ego_motion.check_conditioning(self.conditioning)
     if self.intent_conditioning and not ego_motion.uses_film(self.conditioning):
-      raise ConfigFieldError("intent_conditioning", self.intent_conditioning,
-                             "the intent classifier reads the ego features: needs an "
-                             f"ego_film* conditioning, not {self.conditioning!r}")
+      raise ConfigFieldError(
+          "intent_conditioning",
+          self.intent_conditioning,
+          "the intent classifier reads the ego features: needs an "
+          f"ego_film* conditioning, not {self.conditioning!r}",
+      )
 
   @property
   def cond_dim(self) -> int:

@@ -100,8 +100,9 @@ def to_dataclass(cls: type[T], section: Any, *, where: str = "", **overrides) ->
   fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
   unknown = sorted(set(items) - set(fields))
   if unknown:
-    raise UserError(f"{where or cls.__name__}: unknown field(s) {unknown}; known: "
-                     f"{sorted(fields)}")
+    raise UserError(
+        f"{where or cls.__name__}: unknown field(s) {unknown}; known: " f"{sorted(fields)}"
+    )
   hints = typing.get_type_hints(cls)
   kwargs = {}
   for name, value in items.items():

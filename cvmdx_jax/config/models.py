@@ -60,9 +60,16 @@ class QuantizerConfig:
   def __post_init__(self):
     if self.kind not in QUANTIZERS:
       raise UserError(f"quantizer kind '{self.kind}' is not one of {QUANTIZERS}")
-    check_ranges(self, {"codebook_size": POSITIVE, "latent_dim": POSITIVE,
-                        "beta": NON_NEGATIVE, "usage_decay": FRACTION,
-                        "revive_strength": NON_NEGATIVE})
+    check_ranges(
+        self,
+        {
+            "codebook_size": POSITIVE,
+            "latent_dim": POSITIVE,
+            "beta": NON_NEGATIVE,
+            "usage_decay": FRACTION,
+            "revive_strength": NON_NEGATIVE,
+        },
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,8 +92,10 @@ class TokenizerConfig:
   def __post_init__(self):
     check_ranges(self, {"cls_weight": NON_NEGATIVE, "ego_weight": NON_NEGATIVE})
     if self.encoder.latent_dim != self.quantizer.latent_dim:
-      raise UserError(f"encoder latent_dim {self.encoder.latent_dim} != quantizer "
-                       f"latent_dim {self.quantizer.latent_dim}")
+      raise UserError(
+          f"encoder latent_dim {self.encoder.latent_dim} != quantizer "
+          f"latent_dim {self.quantizer.latent_dim}"
+      )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,20 +144,41 @@ class UNetConfig:
   intent_features: int = 0
 
   def __post_init__(self):
-    check_ranges(self, {**dict.fromkeys(("base_channels", "channel_mult", "num_res_blocks",
-                                         "emb_mult", "num_heads", "groups"), POSITIVE),
-                        "dropout": BELOW_ONE, "attention_levels": NON_NEGATIVE,
-                        "cond_hidden": POSITIVE, "num_intents": NON_NEGATIVE,
-                        "intent_features": NON_NEGATIVE})
+    check_ranges(
+        self,
+        {
+            **dict.fromkeys(
+                (
+                    "base_channels",
+                    "channel_mult",
+                    "num_res_blocks",
+                    "emb_mult",
+                    "num_heads",
+                    "groups",
+                ),
+                POSITIVE,
+            ),
+            "dropout": BELOW_ONE,
+            "attention_levels": NON_NEGATIVE,
+            "cond_hidden": POSITIVE,
+            "num_intents": NON_NEGATIVE,
+            "intent_features": NON_NEGATIVE,
+        },
+    )
     if bool(self.num_intents) != bool(self.intent_features) or (
-        self.intent_features > self.cond_dim):
-      raise UserError(f"num_intents={self.num_intents}, intent_features="
-                       f"{self.intent_features}: the intent classifier needs both, and reads "
-                       f"the first intent_features of the cond_dim={self.cond_dim} inputs")
+        self.intent_features > self.cond_dim
+    ):
+      raise UserError(
+          f"num_intents={self.num_intents}, intent_features="
+          f"{self.intent_features}: the intent classifier needs both, and reads "
+          f"the first intent_features of the cond_dim={self.cond_dim} inputs"
+      )
     factor = 2 ** (len(self.channel_mult) - 1)
     if self.padded_length % factor or self.padded_length < self.length:
-      raise UserError(f"padded_length={self.padded_length} must be >= length={self.length} "
-                       f"and divisible by {factor}")
+      raise UserError(
+          f"padded_length={self.padded_length} must be >= length={self.length} "
+          f"and divisible by {factor}"
+      )
 
   @property
   def null_token(self) -> int:
@@ -182,12 +212,21 @@ class MultipleChoiceConfig:
   residual_decay_s: tuple[float, float] = (3.0, 0.1)
 
   def __post_init__(self):
-    check_ranges(self, {"num_tokens": NON_NEGATIVE, **dict.fromkeys(
-        ("num_hypotheses", "token_dim", "hidden", "control_scale", "residual_decay_s"),
-        POSITIVE)})
+    check_ranges(
+        self,
+        {
+            "num_tokens": NON_NEGATIVE,
+            **dict.fromkeys(
+                ("num_hypotheses", "token_dim", "hidden", "control_scale", "residual_decay_s"),
+                POSITIVE,
+            ),
+        },
+    )
     if len(self.control_scale) != 2 or len(self.residual_decay_s) != 2:
-      raise UserError("control_scale and residual_decay_s need two values (a_x, yaw "
-                       f"rate), got {self.control_scale}, {self.residual_decay_s}")
+      raise UserError(
+          "control_scale and residual_decay_s need two values (a_x, yaw "
+          f"rate), got {self.control_scale}, {self.residual_decay_s}"
+      )
 
   @property
   def input_dim(self) -> int:

@@ -15,12 +15,21 @@ import dataclasses
 from typing import Any
 
 from cvmdx_jax.config.denoiser import DenoiserConfig
-from cvmdx_jax.config.fields import NON_NEGATIVE, POSITIVE, Range, SEED, check_ranges, to_dataclass
-from cvmdx_jax.config.models import (EncoderConfig, MultipleChoiceConfig, QuantizerConfig,
-                                     TokenizerConfig, UNetConfig)
+from cvmdx_jax.config.fields import NON_NEGATIVE, POSITIVE, SEED, Range, check_ranges, to_dataclass
+from cvmdx_jax.config.models import (
+    EncoderConfig,
+    MultipleChoiceConfig,
+    QuantizerConfig,
+    TokenizerConfig,
+    UNetConfig,
+)
 from cvmdx_jax.config.sampling import SamplingConfig
-from cvmdx_jax.config.train import (BaselineTrainConfig, DiffusionTrainConfig,
-                                    DistillTrainConfig, TokenizerTrainConfig)
+from cvmdx_jax.config.train import (
+    BaselineTrainConfig,
+    DiffusionTrainConfig,
+    DistillTrainConfig,
+    TokenizerTrainConfig,
+)
 from cvmdx_jax.errors import UserError
 
 
@@ -62,10 +71,12 @@ class TokenizerRunConfig:
     ValueError naming the field when one is out of range)."""
     sections = dict(config.items())
     encoder = to_dataclass(EncoderConfig, config.model.encoder, where="model.encoder")
-    quantizer = to_dataclass(QuantizerConfig, sections.pop("quantizer"),
-                             where="quantizer", latent_dim=encoder.latent_dim)
-    model = to_dataclass(TokenizerConfig, sections.pop("model"), where="model",
-                         encoder=encoder, quantizer=quantizer)
+    quantizer = to_dataclass(
+        QuantizerConfig, sections.pop("quantizer"), where="quantizer", latent_dim=encoder.latent_dim
+    )
+    model = to_dataclass(
+        TokenizerConfig, sections.pop("model"), where="model", encoder=encoder, quantizer=quantizer
+    )
     return to_dataclass(cls, sections, model=model)
 
 
@@ -97,16 +108,19 @@ class DiffusionRunConfig:
     _check_run(self)
     cond_dim = self.diffusion.cond_dim
     if self.model.cond_dim != cond_dim:
-      raise UserError(f"model.cond_dim={self.model.cond_dim}: the {self.diffusion.conditioning!r} "
-                       f"conditioning has {cond_dim - self.diffusion.guidance_input} ego-motion "
-                       "features (cvmdx_jax/ego_motion.py, FEATURES)"
-                       f"{' and the guidance weight' if self.diffusion.guidance_input else ''}")
+      raise UserError(
+          f"model.cond_dim={self.model.cond_dim}: the {self.diffusion.conditioning!r} "
+          f"conditioning has {cond_dim - self.diffusion.guidance_input} ego-motion "
+          "features (cvmdx_jax/ego_motion.py, FEATURES)"
+          f"{' and the guidance weight' if self.diffusion.guidance_input else ''}"
+      )
     d = self.diffusion
-    if (self.model.num_intents, self.model.intent_features) != (d.num_intents,
-                                                                d.intent_features):
-      raise UserError(f"model.num_intents={self.model.num_intents}, model.intent_features="
-                       f"{self.model.intent_features}: diffusion.intent_conditioning="
-                       f"{d.intent_conditioning} needs {d.num_intents}, {d.intent_features}")
+    if (self.model.num_intents, self.model.intent_features) != (d.num_intents, d.intent_features):
+      raise UserError(
+          f"model.num_intents={self.model.num_intents}, model.intent_features="
+          f"{self.model.intent_features}: diffusion.intent_conditioning="
+          f"{d.intent_conditioning} needs {d.num_intents}, {d.intent_features}"
+      )
 
   @classmethod
   def from_config(cls, config: Any) -> "DiffusionRunConfig":
@@ -119,13 +133,13 @@ class DiffusionRunConfig:
     model.setdefault("cond_dim", diffusion.cond_dim)
     model.setdefault("num_intents", diffusion.num_intents)
     model.setdefault("intent_features", diffusion.intent_features)
-    return to_dataclass(cls, sections, diffusion=diffusion,
-                        model=to_dataclass(UNetConfig, model, where="model"))
+    return to_dataclass(
+        cls, sections, diffusion=diffusion, model=to_dataclass(UNetConfig, model, where="model")
+    )
 
   def with_tokens(self, num_tokens: int) -> "DiffusionRunConfig":
     """This config with the U-Net sized for `num_tokens` tokens (Q; token Q is null)."""
-    return dataclasses.replace(self, model=dataclasses.replace(self.model,
-                                                               num_tokens=num_tokens))
+    return dataclasses.replace(self, model=dataclasses.replace(self.model, num_tokens=num_tokens))
 
 
 # DistillRunConfig.teacher_substeps: k teacher steps a student step
@@ -215,10 +229,10 @@ class BaselineRunConfig:
     sections = dict(config.items())
     model = dict(sections.pop("model").items())
     model.setdefault("num_tokens", 0)
-    return to_dataclass(cls, sections, model=to_dataclass(MultipleChoiceConfig, model,
-                                                          where="model"))
+    return to_dataclass(
+        cls, sections, model=to_dataclass(MultipleChoiceConfig, model, where="model")
+    )
 
   def with_tokens(self, num_tokens: int) -> "BaselineRunConfig":
     """This config with the MLP's token embedding sized for `num_tokens` tokens (Q)."""
-    return dataclasses.replace(self, model=dataclasses.replace(self.model,
-                                                               num_tokens=num_tokens))
+    return dataclasses.replace(self, model=dataclasses.replace(self.model, num_tokens=num_tokens))

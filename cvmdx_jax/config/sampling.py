@@ -6,9 +6,8 @@ from typing import ClassVar
 
 from cvmdx_jax import constants
 from cvmdx_jax.config.denoiser import DenoiserConfig
-from cvmdx_jax.config.fields import ConfigFieldError, FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.fields import FRACTION, NON_NEGATIVE, POSITIVE, ConfigFieldError, check_ranges
 from cvmdx_jax.errors import UserError
-
 
 FORMS = ("paper", "official")
 
@@ -88,16 +87,22 @@ class HypothesisConfig:
   kmeans_iters: int = 10
   endpoint_weight: float = 0.0
 
-  RANGES: ClassVar = {"c_max": POSITIVE, "x_scale": POSITIVE, "y_scale": POSITIVE,
-                      "pca_dim": POSITIVE, "reg_covar": POSITIVE, "em_iters": NON_NEGATIVE,
-                      "kmeans_iters": NON_NEGATIVE, "endpoint_weight": FRACTION}
+  RANGES: ClassVar = {
+      "c_max": POSITIVE,
+      "x_scale": POSITIVE,
+      "y_scale": POSITIVE,
+      "pca_dim": POSITIVE,
+      "reg_covar": POSITIVE,
+      "em_iters": NON_NEGATIVE,
+      "kmeans_iters": NON_NEGATIVE,
+      "endpoint_weight": FRACTION,
+  }
 
   def __post_init__(self):
     if self.method not in METHODS:
       raise UserError(f"HypothesisConfig.method must be one of {METHODS}, got {self.method!r}")
     if self.scaling not in SCALINGS:
-      raise UserError(
-          f"HypothesisConfig.scaling must be one of {SCALINGS}, got {self.scaling!r}")
+      raise UserError(f"HypothesisConfig.scaling must be one of {SCALINGS}, got {self.scaling!r}")
     check_ranges(self, self.RANGES)
 
 
@@ -146,18 +151,31 @@ class SamplingConfig:
 
   def __post_init__(self):
     object.__setattr__(self, "intent_prior", tuple(float(w) for w in self.intent_prior))
-    check_ranges(self, {"num_samples": POSITIVE, "steps": POSITIVE, "eta": NON_NEGATIVE,
-                        "clip_x0": NON_NEGATIVE, "intent_prior": POSITIVE})
+    check_ranges(
+        self,
+        {
+            "num_samples": POSITIVE,
+            "steps": POSITIVE,
+            "eta": NON_NEGATIVE,
+            "clip_x0": NON_NEGATIVE,
+            "intent_prior": POSITIVE,
+        },
+    )
     if len(self.intent_prior) != constants.NUM_CLASSES:
-      raise ConfigFieldError("intent_prior", self.intent_prior,
-                             f"needs {constants.NUM_CLASSES} weights (keep lane, lcr, lcl)")
+      raise ConfigFieldError(
+          "intent_prior",
+          self.intent_prior,
+          f"needs {constants.NUM_CLASSES} weights (keep lane, lcr, lcl)",
+      )
     if self.clip_x0 == 0:  # the config's "0 = off"
       object.__setattr__(self, "clip_x0", None)
     if self.sampler not in SAMPLERS:
       raise UserError(f"sampling.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
     if self.mode not in MODES or (self.mode == "official" and self.sampler != "ddim"):
-      raise UserError(f"sampling.mode must be one of {MODES} ('official' with sampler "
-                       f"'ddim'), got {self.mode!r} with {self.sampler!r}")
+      raise UserError(
+          f"sampling.mode must be one of {MODES} ('official' with sampler "
+          f"'ddim'), got {self.mode!r} with {self.sampler!r}"
+      )
 
 
 def check_sampling(config: SamplingConfig, denoiser: DenoiserConfig) -> None:
@@ -170,12 +188,19 @@ def check_sampling(config: SamplingConfig, denoiser: DenoiserConfig) -> None:
     ConfigFieldError: sampling.intent_prior set for a denoiser without intent conditioning.
   """
   if denoiser.guidance_input and config.mode == "official":
-    raise UserError("sampling.mode 'official' runs the guided pair; a distilled denoiser "
-                    "(guidance_input) has none: use mode 'paper'")
+    raise UserError(
+        "sampling.mode 'official' runs the guided pair; a distilled denoiser "
+        "(guidance_input) has none: use mode 'paper'"
+    )
   if config.sampler == "distilled" and not denoiser.guidance_input:
-    raise UserError("sampling.sampler 'distilled' needs a distilled denoiser "
-                    "(experiments/distill.py); this one is not")
+    raise UserError(
+        "sampling.sampler 'distilled' needs a distilled denoiser "
+        "(experiments/distill.py); this one is not"
+    )
   if not denoiser.intent_conditioning and any(w != 1 for w in config.intent_prior):
-    raise ConfigFieldError("sampling.intent_prior", config.intent_prior,
-                           "this denoiser draws no maneuver classes (it was trained without "
-                           "diffusion.intent_conditioning): leave it at 1, 1, 1")
+    raise ConfigFieldError(
+        "sampling.intent_prior",
+        config.intent_prior,
+        "this denoiser draws no maneuver classes (it was trained without "
+        "diffusion.intent_conditioning): leave it at 1, 1, 1",
+    )

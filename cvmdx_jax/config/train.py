@@ -3,8 +3,14 @@
 import dataclasses
 from typing import ClassVar
 
-from cvmdx_jax.config.fields import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE,
-                                     ConfigFieldError, check_ranges)
+from cvmdx_jax.config.fields import (
+    BELOW_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    ConfigFieldError,
+    check_ranges,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,9 +25,14 @@ class BaseTrainConfig:
   checkpoint_every: int = 5
   keep: int = 2
 
-  RANGES: ClassVar = {"batch_size": POSITIVE, "num_epochs": POSITIVE,
-                      "learning_rate": POSITIVE, "grad_clip": NON_NEGATIVE,
-                      "checkpoint_every": POSITIVE, "keep": POSITIVE}
+  RANGES: ClassVar = {
+      "batch_size": POSITIVE,
+      "num_epochs": POSITIVE,
+      "learning_rate": POSITIVE,
+      "grad_clip": NON_NEGATIVE,
+      "checkpoint_every": POSITIVE,
+      "keep": POSITIVE,
+  }
 
   def __post_init__(self):
     check_ranges(self, self.RANGES)
@@ -46,9 +57,13 @@ class DiffusionTrainConfig(BaseTrainConfig):
   weight_decay: float = 0.0
   ema_decay: float = 0.9999
 
-  RANGES: ClassVar = {**BaseTrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
-                      "min_lr": NON_NEGATIVE, "weight_decay": NON_NEGATIVE,
-                      "ema_decay": BELOW_ONE}
+  RANGES: ClassVar = {
+      **BaseTrainConfig.RANGES,
+      "warmup_steps": NON_NEGATIVE,
+      "min_lr": NON_NEGATIVE,
+      "weight_decay": NON_NEGATIVE,
+      "ema_decay": BELOW_ONE,
+  }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +79,16 @@ class DistillTrainConfig(DiffusionTrainConfig):
 
 # val read-outs of the baseline's `train.baseline.evaluate` the epoch can be chosen on
 # (lower is better)
-SELECT_METRICS = ("loss", "wta_ade", "min_ade", "min_fde", "ml_ade", "ml_fde", "mean_ade",
-                  "mean_fde")
+SELECT_METRICS = (
+    "loss",
+    "wta_ade",
+    "min_ade",
+    "min_fde",
+    "ml_ade",
+    "ml_fde",
+    "mean_ade",
+    "mean_fde",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,11 +107,16 @@ class BaselineTrainConfig(BaseTrainConfig):
   weight_decay: float = 1e-4
   select_metric: str = "min_ade"
 
-  RANGES: ClassVar = {**BaseTrainConfig.RANGES, "warmup_steps": NON_NEGATIVE,
-                      "end_lr_fraction": FRACTION, "weight_decay": NON_NEGATIVE}
+  RANGES: ClassVar = {
+      **BaseTrainConfig.RANGES,
+      "warmup_steps": NON_NEGATIVE,
+      "end_lr_fraction": FRACTION,
+      "weight_decay": NON_NEGATIVE,
+  }
 
   def __post_init__(self):
     super().__post_init__()
     if self.select_metric not in SELECT_METRICS:
-      raise ConfigFieldError("select_metric", self.select_metric,
-                             f"must be one of {SELECT_METRICS}")
+      raise ConfigFieldError(
+          "select_metric", self.select_metric, f"must be one of {SELECT_METRICS}"
+      )

@@ -19,19 +19,23 @@ from cvmdx_jax.errors import UserError
 
 # name -> (steps, eta, clip_x0) -> sample(v_fn, key, shape, schedule)
 _SAMPLERS = {
-    "ddim": lambda steps, eta, clip_x0: functools.partial(ddim_sample, steps=steps, eta=eta,
-                                                          clip_x0=clip_x0),
+    "ddim": lambda steps, eta, clip_x0: functools.partial(
+        ddim_sample, steps=steps, eta=eta, clip_x0=clip_x0
+    ),
     "ddpm": lambda steps, eta, clip_x0: functools.partial(ddpm_sample, clip_x0=clip_x0),
-    "dpmpp2m": lambda steps, eta, clip_x0: functools.partial(dpmpp_2m_sample, steps=steps,
-                                                             clip_x0=clip_x0),
-    "distilled": lambda steps, eta, clip_x0: functools.partial(distilled_sample, steps=steps,
-                                                               clip_x0=clip_x0),
+    "dpmpp2m": lambda steps, eta, clip_x0: functools.partial(
+        dpmpp_2m_sample, steps=steps, clip_x0=clip_x0
+    ),
+    "distilled": lambda steps, eta, clip_x0: functools.partial(
+        distilled_sample, steps=steps, clip_x0=clip_x0
+    ),
 }
 SAMPLER_NAMES = tuple(_SAMPLERS)
 
 
-def get_sampler(name: str, *, steps: int, eta: float = 0.0,
-                clip_x0: float | None = None) -> Callable:
+def get_sampler(
+    name: str, *, steps: int, eta: float = 0.0, clip_x0: float | None = None
+) -> Callable:
   """The sampler `name` with its settings bound: sample(v_fn, key, shape, schedule) -> x0.
 
   Args:

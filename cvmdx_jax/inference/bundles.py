@@ -47,7 +47,8 @@ class TokenizerBundle:
   config: TokenizerConfig = _static()
   fingerprint: ml_collections.FrozenConfigDict = _static()
   checkpoint: ml_collections.FrozenConfigDict | None = dataclasses.field(
-      default=None, metadata={"static": True})
+      default=None, metadata={"static": True}
+  )
 
   def tokenize(self, xi: jax.Array, mask: jax.Array):
     """Tokens of B scenarios (jittable).
@@ -97,8 +98,9 @@ class Denoiser:
     """The unconditional token (Q)."""
     return self.config.model.null_token
 
-  def apply(self, x: jax.Array, t: jax.Array, q: jax.Array,
-            cond: jax.Array | None = None) -> jax.Array:
+  def apply(
+      self, x: jax.Array, t: jax.Array, q: jax.Array, cond: jax.Array | None = None
+  ) -> jax.Array:
     """v (B, 125, 2) of normalised controls x (B, 125, 2) at steps t (B,) for tokens q (B,)
     (and, for an ego-conditioned run, ego-motion features cond (B, ego_motion.NUM_FEATURES))."""
     return unet1d.apply_unet(self.graphdef, self.params, x, t, q, cond=cond)
@@ -126,25 +128,37 @@ class LearnedBaseline:
   def __call__(self, q, delta, xi, mask, v0, psi0):
     """(trajectories (M, K, 125, 2) m, probabilities (M, K)) from tokens q (M,), delta
     (M,) and the observed scenarios xi (M, 9, 75, 4), mask (M, 9, 75), v0, psi0 (M,)."""
-    out = _hypotheses(self, jnp.asarray(q, jnp.int32), jnp.asarray(delta, jnp.float32),
-                      jnp.asarray(xi, jnp.float32), jnp.asarray(mask, bool),
-                      jnp.asarray(v0, jnp.float32), jnp.asarray(psi0, jnp.float32))
+    out = _hypotheses(
+        self,
+        jnp.asarray(q, jnp.int32),
+        jnp.asarray(delta, jnp.float32),
+        jnp.asarray(xi, jnp.float32),
+        jnp.asarray(mask, bool),
+        jnp.asarray(v0, jnp.float32),
+        jnp.asarray(psi0, jnp.float32),
+    )
     return tuple(np.asarray(a) for a in out)
 
 
 @jax.jit
 def _hypotheses(baseline: LearnedBaseline, q, delta, xi, mask, v0, psi0):
   ego = ego_motion.ego_features(xi, mask)
-  return mc.hypotheses(baseline.graphdef, baseline.params, baseline.config.model, q, delta,
-                       ego, v0, psi0)
+  return mc.hypotheses(
+      baseline.graphdef, baseline.params, baseline.config.model, q, delta, ego, v0, psi0
+  )
 
 
 def load_tokenizer(workdir: str | os.PathLike) -> TokenizerBundle:
   """The trained tokeniser of `workdir` for inference (raises as `runs.loaders.read_tokenizer`)."""
   params, gaussians, model_cfg, fingerprint, checkpoint = loaders.read_tokenizer(workdir)
-  return TokenizerBundle(params, jax.tree.map(jnp.asarray, gaussians),
-                         tokenizer_lib.make_graphdef(model_cfg), model_cfg, fingerprint,
-                         checkpoint)
+  return TokenizerBundle(
+      params,
+      jax.tree.map(jnp.asarray, gaussians),
+      tokenizer_lib.make_graphdef(model_cfg),
+      model_cfg,
+      fingerprint,
+      checkpoint,
+  )
 
 
 def load_denoiser(workdir: str | os.PathLike) -> Denoiser:
@@ -164,8 +178,7 @@ def load_baseline(workdir: str | os.PathLike) -> LearnedBaseline:
       complete checkpoint, one of another model size (e.g. another number of ego-motion
       features), or a corrupt one.
   """
-  config, params, fingerprint, epoch = loaders.load_val_chosen(workdir, BaselineRunConfig, mc.init,
-                                                       "baseline")
+  config, params, fingerprint, epoch = loaders.load_val_chosen(
+      workdir, BaselineRunConfig, mc.init, "baseline"
+  )
   return LearnedBaseline(params, mc.make_graphdef(config.model), config, fingerprint, epoch)
-
-

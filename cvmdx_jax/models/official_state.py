@@ -8,7 +8,6 @@ import numpy as np
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.errors import UserError
 
-
 OFFICIAL_NUM_HEADS = 4
 OFFICIAL_GROUPS = 32  # the official GroupNorm32 always uses 32 groups
 _CANDIDATE_KEYS = ("label_emb.weight", "time_embed.0.weight", "input_blocks.0.0.weight")
@@ -23,10 +22,12 @@ class NumHeadsError(OfficialCheckpointError):
 
 
 def _is_state_dict(obj) -> bool:
-  return (isinstance(obj, dict) and bool(obj)
-          and all(isinstance(v, np.ndarray) for v in obj.values())
-          and any(isinstance(k, str) and k.removeprefix("module.") in _CANDIDATE_KEYS
-                  for k in obj))
+  return (
+      isinstance(obj, dict)
+      and bool(obj)
+      and all(isinstance(v, np.ndarray) for v in obj.values())
+      and any(isinstance(k, str) and k.removeprefix("module.") in _CANDIDATE_KEYS for k in obj)
+  )
 
 
 def unwrap_state_dict(obj, where: str, key: str | None = None) -> dict[str, np.ndarray]:
@@ -55,19 +56,24 @@ def unwrap_state_dict(obj, where: str, key: str | None = None) -> dict[str, np.n
       raise OfficialCheckpointError(
           f"{where}: expected a U-Net state dict (with {_CANDIDATE_KEYS[0]!r}) or a dict "
           f"holding exactly one; found entries {sorted(map(str, obj))[:8]}"
-          + (f", of which {nested} are state dicts: choose one with key=" if nested else ""))
+          + (f", of which {nested} are state dicts: choose one with key=" if nested else "")
+      )
     obj = obj[nested[0]]
   names = [k for k in obj if not isinstance(k, str)]
   if names:
-    raise OfficialCheckpointError(f"{where}: the state dict has a key {names[0]!r} of type "
-                                  f"{type(names[0]).__name__}; parameter names are strings")
+    raise OfficialCheckpointError(
+        f"{where}: the state dict has a key {names[0]!r} of type "
+        f"{type(names[0]).__name__}; parameter names are strings"
+    )
   if all(k.startswith("module.") for k in obj):
     obj = {k.removeprefix("module."): v for k, v in obj.items()}
   state = {k: np.asarray(v, np.float32) for k, v in obj.items()}
   bad = [k for k, v in state.items() if not np.isfinite(v).all()]
   if bad:
-    raise OfficialCheckpointError(f"{where}: parameter {bad[0]} holds NaN or Inf values"
-                                  + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""))
+    raise OfficialCheckpointError(
+        f"{where}: parameter {bad[0]} holds NaN or Inf values"
+        + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else "")
+    )
   return state
 
 
@@ -75,15 +81,16 @@ def _shape(state, name: str, ndim: int, where: str) -> tuple[int, ...]:
   """The shape of parameter `name`, checked to have `ndim` non-zero dimensions."""
   shape = state[name].shape
   if len(shape) != ndim or 0 in shape:
-    raise OfficialCheckpointError(f"{where}: parameter {name} has shape {shape}; expected "
-                                  f"{ndim} non-zero dimensions")
+    raise OfficialCheckpointError(
+        f"{where}: parameter {name} has shape {shape}; expected " f"{ndim} non-zero dimensions"
+    )
   return shape
 
 
 def _block_indices(state, prefix: str) -> list[int]:
   indices = set()
   for k in state:
-    part = k[len(prefix) + 1:].split(".")[0] if k.startswith(prefix + ".") else None
+    part = k[len(prefix) + 1 :].split(".")[0] if k.startswith(prefix + ".") else None
     if part is not None and not part.isdigit():
       raise OfficialCheckpointError(f"parameter {k}: {part!r} is not a block index")
     if part is not None:
@@ -91,8 +98,9 @@ def _block_indices(state, prefix: str) -> list[int]:
   return sorted(indices)
 
 
-def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEADS,
-                where: str = "state dict") -> UNetConfig:
+def unet_config(
+    state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEADS, where: str = "state dict"
+) -> UNetConfig:
   """The `UNetConfig` of an official state dict: Q from the label embedding, widths,
   levels, residual blocks per level and attention levels from the layer shapes.
 
@@ -110,11 +118,13 @@ def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEAD
   if in_ch != 2 or out_ch != 2:
     raise OfficialCheckpointError(
         f"{where}: the U-Net maps {in_ch} -> {out_ch} channels; expected 2 -> 2 "
-        "(learn_sigma=False, controls [a_x, yaw rate])")
+        "(learn_sigma=False, controls [a_x, yaw rate])"
+    )
   if emb % ch or ch % OFFICIAL_GROUPS or rows < 2:
     raise OfficialCheckpointError(
         f"{where}: {ch} base channels, embedding width {emb}, {rows} label rows; expected a "
-        f"multiple of {OFFICIAL_GROUPS}, a multiple of it, and Q + 1 >= 2")
+        f"multiple of {OFFICIAL_GROUPS}, a multiple of it, and Q + 1 >= 2"
+    )
   try:
     inputs = _block_indices(state, "input_blocks")
   except OfficialCheckpointError as e:
@@ -123,8 +133,10 @@ def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEAD
   levels = len(downs) + 1
   per_level, rem = divmod(len(inputs) - 1 - len(downs), levels)
   if rem or per_level < 1:
-    raise OfficialCheckpointError(f"{where}: {len(inputs)} input blocks with {len(downs)} "
-                                  "downsamplings do not form a U-Net of equal levels")
+    raise OfficialCheckpointError(
+        f"{where}: {len(inputs)} input blocks with {len(downs)} "
+        "downsamplings do not form a U-Net of equal levels"
+    )
   mults, attention, i = [], [], 1
   for level in range(levels):
     out_name = f"input_blocks.{i}.0.out_layers.3.weight"
@@ -133,23 +145,36 @@ def unet_config(state: dict[str, np.ndarray], num_heads: int = OFFICIAL_NUM_HEAD
       raise OfficialCheckpointError(f"{where}: input_blocks.{i} is not a residual block")
     width = _shape(state, out_name, 3, where)[0]
     if width % ch:
-      raise OfficialCheckpointError(f"{where}: parameter {out_name} has {width} output "
-                                    f"channels, not a multiple of the {ch} base channels")
+      raise OfficialCheckpointError(
+          f"{where}: parameter {out_name} has {width} output "
+          f"channels, not a multiple of the {ch} base channels"
+      )
     if _shape(state, film_name, 2, where)[0] != 2 * width:
-      raise OfficialCheckpointError(f"{where}: input_blocks.{i} has no scale-shift FiLM "
-                                    "(use_scale_shift_norm=True is required)")
+      raise OfficialCheckpointError(
+          f"{where}: input_blocks.{i} has no scale-shift FiLM "
+          "(use_scale_shift_norm=True is required)"
+      )
     mults.append(width // ch)
     if f"input_blocks.{i}.1.qkv.weight" in state:
       attention.append(level)
     i += per_level + (level < levels - 1)
   widths = sorted({ch * mults[level] for level in attention} | {ch * mults[-1]})
   if any(c % num_heads for c in widths):
-    raise NumHeadsError(f"{where}: the attention blocks have {widths} channels, not all "
-                        f"divisible by {num_heads} heads")
+    raise NumHeadsError(
+        f"{where}: the attention blocks have {widths} channels, not all "
+        f"divisible by {num_heads} heads"
+    )
   try:
-    return UNetConfig(num_tokens=rows - 1, base_channels=ch, channel_mult=tuple(mults),
-                             num_res_blocks=per_level, emb_mult=emb // ch,
-                             attention_levels=tuple(attention), num_heads=num_heads,
-                             groups=OFFICIAL_GROUPS, dropout=0.0)
+    return UNetConfig(
+        num_tokens=rows - 1,
+        base_channels=ch,
+        channel_mult=tuple(mults),
+        num_res_blocks=per_level,
+        emb_mult=emb // ch,
+        attention_levels=tuple(attention),
+        num_heads=num_heads,
+        groups=OFFICIAL_GROUPS,
+        dropout=0.0,
+    )
   except ValueError as e:  # e.g. more levels than the padded length allows
     raise OfficialCheckpointError(f"{where}: {e}") from None

@@ -27,11 +27,16 @@ def _bfloat16(raw: np.ndarray) -> np.ndarray:
 
 # torch storage type -> (numpy dtype of the raw buffer, conversion or None)
 STORAGES = {
-    "FloatStorage": (np.float32, None), "DoubleStorage": (np.float64, None),
-    "HalfStorage": (np.float16, None), "BFloat16Storage": (np.uint16, _bfloat16),
-    "LongStorage": (np.int64, None), "IntStorage": (np.int32, None),
-    "ShortStorage": (np.int16, None), "CharStorage": (np.int8, None),
-    "ByteStorage": (np.uint8, None), "BoolStorage": (np.uint8, lambda raw: raw != 0),
+    "FloatStorage": (np.float32, None),
+    "DoubleStorage": (np.float64, None),
+    "HalfStorage": (np.float16, None),
+    "BFloat16Storage": (np.uint16, _bfloat16),
+    "LongStorage": (np.int64, None),
+    "IntStorage": (np.int32, None),
+    "ShortStorage": (np.int16, None),
+    "CharStorage": (np.int8, None),
+    "ByteStorage": (np.uint8, None),
+    "BoolStorage": (np.uint8, lambda raw: raw != 0),
 }
 SCALARS = (str, bytes, int, float, type(None))  # bool is an int
 
@@ -97,8 +102,9 @@ class TensorBuilder:
     elif kind in (list, tuple):
       out = kind(self.resolve(v, path + (i,), depth + 1) for i, v in enumerate(obj))
     else:
-      raise Refused(f"{where()}: holds {describe(obj)}, not a container, number, string or "
-                     "tensor")
+      raise Refused(
+          f"{where()}: holds {describe(obj)}, not a container, number, string or " "tensor"
+      )
     self._open.discard(id(obj))
     self._done[id(obj)] = out
     return out
@@ -106,11 +112,18 @@ class TensorBuilder:
   def _materialise(self, t: TensorArgs, where: str) -> np.ndarray:
     ref, offset, size, stride = t.storage, t.offset, t.size, t.stride
     what = f"tensor {where} (storage {ref.info.filename})"
-    if not (is_int(offset) and type(size) is tuple and type(stride) is tuple
-            and all(map(is_int, size + stride)) and len(size) == len(stride) <= 32):
-      raise Refused(f"{what}: offset, size and stride must be an integer and two equally "
-                     f"long tuples of integers, got {describe(offset)}, {describe(size)}, "
-                     f"{describe(stride)}")
+    if not (
+        is_int(offset)
+        and type(size) is tuple
+        and type(stride) is tuple
+        and all(map(is_int, size + stride))
+        and len(size) == len(stride) <= 32
+    ):
+      raise Refused(
+          f"{what}: offset, size and stride must be an integer and two equally "
+          f"long tuples of integers, got {describe(offset)}, {describe(size)}, "
+          f"{describe(stride)}"
+      )
     if offset < 0 or any(n < 0 or n > MAX_DIM for n in size):
       raise Refused(f"{what}: offset {offset} or size {size} out of range")
     dtype, convert = STORAGES[ref.kind]
@@ -121,23 +134,31 @@ class TensorBuilder:
     extent = 1  # elements spanned by the dimensions of smaller stride
     for n, s in sorted((p for p in zip(size, stride) if p[0] > 1), key=lambda p: p[1]):
       if s < extent:
-        raise Refused(f"{what}: size {size} with stride {stride} is a broadcast, reversed "
-                       "or overlapping view; only views of distinct elements are read")
+        raise Refused(
+            f"{what}: size {size} with stride {stride} is a broadcast, reversed "
+            "or overlapping view; only views of distinct elements are read"
+        )
       extent += (n - 1) * s
     if offset + extent > ref.numel:
-      raise Refused(f"{what}: size {size}, stride {stride}, offset {offset} exceeds its "
-                     f"storage of {ref.numel} elements")
+      raise Refused(
+          f"{what}: size {size}, stride {stride}, offset {offset} exceeds its "
+          f"storage of {ref.numel} elements"
+      )
     self._budget -= numel * out_dtype.itemsize
     if self._budget < 0:
-      raise Refused(f"{what}: the tensors add up to more than twice the file's "
-                     f"{self._length} bytes (views sharing their storage)")
+      raise Refused(
+          f"{what}: the tensors add up to more than twice the file's "
+          f"{self._length} bytes (views sharing their storage)"
+      )
     key = ref.info.filename
     if key not in self._arrays:
       raw = self._read_entry(ref.info)
-      self._arrays[key] = np.frombuffer(raw, np.dtype(dtype).newbyteorder(self._order),
-                                        count=ref.numel)
+      self._arrays[key] = np.frombuffer(
+          raw, np.dtype(dtype).newbyteorder(self._order), count=ref.numel
+      )
     data = self._arrays[key]
     view = np.lib.stride_tricks.as_strided(
-        data[offset:], shape=size, strides=[s * data.itemsize for s in stride], writeable=False)
+        data[offset:], shape=size, strides=[s * data.itemsize for s in stride], writeable=False
+    )
     array = np.array(view, dtype=np.dtype(dtype))  # native byte order, contiguous
     return convert(array) if convert else array

@@ -11,8 +11,12 @@ import dataclasses
 import pytest
 
 from configs import baseline, diffusion, distill, tokenizer
-from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
-                                   TokenizerRunConfig)
+from cvmdx_jax.config.runs import (
+    BaselineRunConfig,
+    DiffusionRunConfig,
+    DistillRunConfig,
+    TokenizerRunConfig,
+)
 
 # field -> the base preset's value, where it differs from the dataclass default on purpose
 CHOICES = {
@@ -25,8 +29,12 @@ CHOICES = {
     "baseline": {},
     "distill": {},
 }
-RUNS = {"diffusion": (diffusion, DiffusionRunConfig), "tokenizer": (tokenizer, TokenizerRunConfig),
-        "baseline": (baseline, BaselineRunConfig), "distill": (distill, DistillRunConfig)}
+RUNS = {
+    "diffusion": (diffusion, DiffusionRunConfig),
+    "tokenizer": (tokenizer, TokenizerRunConfig),
+    "baseline": (baseline, BaselineRunConfig),
+    "distill": (distill, DistillRunConfig),
+}
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:
@@ -52,9 +60,15 @@ def test_the_base_preset_is_the_dataclass_defaults_but_for_its_listed_choices(na
 def test_the_paper_preset_is_the_papers_setup():
   paper = DiffusionRunConfig.from_config(diffusion.get_config("paper"))
   assert (paper.train.batch_size, paper.train.learning_rate, paper.train.num_epochs) == (
-      256, 2e-4, 2000)
+      256,
+      2e-4,
+      2000,
+  )
   assert (paper.sampling.sampler, paper.sampling.steps, paper.sampling.mode) == (
-      "ddim", 10, "paper")
+      "ddim",
+      10,
+      "paper",
+  )
   guidance = paper.sampling.guidance
   assert (guidance.t_c, guidance.w_max_base, guidance.w_min) == (50.0, 1.0, 0.1)
   assert (paper.diffusion.num_steps, paper.diffusion.conditioning) == (1000, "token")

@@ -8,8 +8,13 @@ from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.inference.bundles import Denoiser
 
 
-def bundle(graphdef, params, unet: UNetConfig,
-           diffusion: DenoiserConfig = DenoiserConfig()) -> Denoiser:
+def bundle(
+    graphdef, params, unet: UNetConfig, diffusion: DenoiserConfig = DenoiserConfig()
+) -> Denoiser:
   """The `Denoiser` of U-Net `unet` (graphdef, params) trained as `diffusion` says."""
-  return Denoiser(params, graphdef, DiffusionRunConfig(model=unet, diffusion=diffusion),
-                  ml_collections.FrozenConfigDict({}))
+  return Denoiser(
+      params,
+      graphdef,
+      DiffusionRunConfig(model=unet, diffusion=diffusion),
+      ml_collections.FrozenConfigDict({}),
+  )
