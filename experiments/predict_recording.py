@@ -55,6 +55,8 @@ _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_b
 _CHUNK = flags.DEFINE_integer("chunk_size", 256, "Vehicle-frames per jitted call.",
                               lower_bound=1)
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")
+_SECTION = flags.DEFINE_list("animation_x", None, "x0,x1: the section of the road the GIF "
+                             "shows (image x, m; default the whole road).")
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "out"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir", "highd_dir")
 
@@ -107,6 +109,20 @@ def _accuracy(preds, rec, frames) -> dict:
                                         for k, v in values.items()}}
 
 
+def _section() -> tuple[float, float] | None:
+  """--animation_x as (x0, x1), x0 < x1."""
+  if _SECTION.value is None:
+    return None
+  try:
+    x0, x1 = (float(x) for x in _SECTION.value)
+  except ValueError as err:
+    raise UserError(f"--animation_x={','.join(_SECTION.value)}: expected two numbers "
+                    "x0,x1") from err
+  if not x0 < x1:
+    raise UserError(f"--animation_x={','.join(_SECTION.value)}: needs x0 < x1")
+  return x0, x1
+
+
 def _code_version() -> dict:
   try:
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -135,6 +151,7 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   recording.check_table_path(_OUT.value)
+  section = _section()
   data_dir, recording_id = _source()
   rec = highd.read_recording(data_dir, recording_id)
   first, last = frames_lib.frame_range(rec)
@@ -158,7 +175,7 @@ def main(argv):
   if _ANIMATION.value:
     from cvmdx_jax.evaluation import animation  # matplotlib only where a GIF is asked for
     gif = animation.render_gif(rec, frames_lib.scene(data_dir, recording_id), frames, preds,
-                               fps=constants.FRAME_RATE_HZ / _EVERY.value)
+                               fps=constants.FRAME_RATE_HZ / _EVERY.value, x_range=section)
     atomic.write_bytes(_ANIMATION.value, gif)
   window = {"start": start, "end": end, "every": _EVERY.value}
   summary["table_rows"] = len(table)

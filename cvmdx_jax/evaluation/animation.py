@@ -8,6 +8,7 @@ vehicle predicted at that frame its hypothesis means, line width and opacity gro
 the probability, the probability written at the end of each line.
 """
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -57,7 +58,7 @@ def _draw_frame(ax, rec, scene: dict, frame: int, preds, x_range, y_range) -> No
       for c in np.flatnonzero(preds.probs[i] > 0):
         p, path = preds.probs[i, c], preds.means[i, c]
         ax.plot(path[:, 0], path[:, 1], color=colour, lw=0.6 + 2.0 * p, alpha=0.35 + 0.65 * p)
-        ax.text(path[-1, 0], path[-1, 1], f"{p:.2f}", fontsize=5, color=colour)
+        ax.text(path[-1, 0], path[-1, 1], f"{p:.2f}", fontsize=5, color=colour, clip_on=True)
   ax.set_xlim(*x_range)
   ax.set_ylim(y_range[1], y_range[0])  # y down, as the image
   ax.set_aspect("equal")
@@ -67,15 +68,18 @@ def _draw_frame(ax, rec, scene: dict, frame: int, preds, x_range, y_range) -> No
 
 
 def render_gif(rec, scene: dict, frames, preds=None, fps: float = 5.0,
-               width_in: float = 12.0) -> bytes:
+               width_in: float = 16.0, x_range=None) -> bytes:
   """GIF bytes of `frames` of recording `rec` (`data.highd.Recording`) with `scene`
   (`data.frames.scene`) and the predictions `preds` (`inference.recording.
-  VehiclePredictions`, drawn at their own frames; None = vehicles only)."""
+  VehiclePredictions`, drawn at their own frames; None = vehicles only); `x_range` (x0, x1)
+  the image-frame section drawn, m (None: the whole road)."""
   frames = [int(f) for f in frames]
   if not frames:
     raise ValueError("render_gif: no frames to draw")
-  centres = frames_lib.image_centre(rec, np.arange(len(rec.frame)))
-  x_range = (float(centres[:, 0].min()) - 10.0, float(centres[:, 0].max()) + 10.0)
+  if x_range is None:
+    centres = frames_lib.image_centre(rec, np.arange(len(rec.frame)))
+    x_range = (float(centres[:, 0].min()) - 10.0, float(centres[:, 0].max()) + 10.0)
+  x_range = tuple(float(x) for x in x_range)
   lanes = np.concatenate([scene["upper"], scene["lower"]])
   y_range = (float(lanes.min()) - 2.0, float(lanes.max()) + 2.0)
   height_in = max(1.5, width_in * (y_range[1] - y_range[0]) / (x_range[1] - x_range[0]) + 0.6)
@@ -93,18 +97,28 @@ def render_gif(rec, scene: dict, frames, preds=None, fps: float = 5.0,
 
 
 def write_clip(predictor, data_dir, recording_id: int, path, start_s: float = 10.0,
-               seconds: float = 3.0, every: int = 5, seed: int = 0) -> dict:
-  """Predicts every vehicle of recording `recording_id` of `data_dir` at every `every`-th
-  frame of [start_s, start_s + seconds] (s after its first frame; `predictor` a
-  `Predictor`) and writes the GIF to `path` (atomic). Returns the prediction summary
+               seconds: float = 1.0, every: int = 5, section_m: float = 300.0,
+               num_samples: int | None = 9, seed: int = 0) -> dict:
+  """Writes to `path` (atomic) a GIF of `seconds` of recording `recording_id` of `data_dir`
+  from `start_s` after its first frame, at every `every`-th frame: the middle `section_m`
+  metres of the road and the hypotheses of every vehicle there (`predictor`, a
+  `Predictor`, with `num_samples` samples; None = its own). The defaults keep `make demo`'s
+  clip short (about 100 predictions). Returns the prediction summary
   (`inference.recording.predict_frames`)."""
+  if num_samples is not None:
+    predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
+        predictor.sampling, num_samples=num_samples))
   rec = highd.read_recording(data_dir, recording_id)
   first, last = frames_lib.frame_range(rec)
   begin = min(last, first + round(start_s * constants.FRAME_RATE_HZ))
-  window = list(range(begin, min(last, begin + round(seconds * constants.FRAME_RATE_HZ)) + 1,
-                      every))
-  preds, summary = recording.predict_frames(predictor, rec, window, seed=seed, every=every)
+  end = min(last, begin + round(seconds * constants.FRAME_RATE_HZ))
+  window = list(range(begin, end + 1, every))
+  x = frames_lib.image_centre(rec, np.arange(len(rec.frame)))[:, 0]
+  middle = 0.5 * (x.min() + x.max())
+  section = (middle - section_m / 2, middle + section_m / 2)
+  preds, summary = recording.predict_frames(predictor, rec, window, seed=seed, every=every,
+                                            section=section)
   gif = render_gif(rec, frames_lib.scene(data_dir, recording_id), window, preds,
-                   fps=constants.FRAME_RATE_HZ / every)
+                   fps=constants.FRAME_RATE_HZ / every, x_range=section)
   atomic.write_bytes(path, gif)
   return summary

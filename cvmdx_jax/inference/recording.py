@@ -151,30 +151,36 @@ def temporal_consistency(preds: VehiclePredictions, step: int) -> np.ndarray:
 
 
 def predict_frames(predictor, rec, frames, seed: int = 0, samples: bool = False,
-                   every: int | None = None) -> tuple[VehiclePredictions, dict]:
+                   every: int | None = None, section=None) -> tuple[VehiclePredictions, dict]:
   """Every vehicle with 3 s of history at each of `frames` of recording `rec`
-  (`data.highd.Recording`), in batches of `predictor.chunk_size` over vehicles and frames
-  (observations built per batch; only the hypotheses, and the samples if asked, are kept).
+  (`data.highd.Recording`; with `section` (x0, x1) only those whose image-frame centre x
+  lies in it), in batches of `predictor.chunk_size` over vehicles and frames (observations
+  built per batch; only the hypotheses, and the samples if asked, are kept).
 
   Returns:
-    (predictions, summary): summary = {"predictions", "vehicles", "frames", "seconds",
-    "predictions_per_second", "out_of_distribution", "consistency_m" (mean and median of
-    `temporal_consistency` at `every` frames, where 0 < every < 125)}; the predictions are
-    in the order of `data.frames.observable_rows`.
+    (predictions, summary): summary = {"predictions", "vehicles", "frames", "seconds"
+    (wall clock, first compilation included), "cpu_seconds" (the process's, all threads),
+    "predictions_per_second" (wall clock), "out_of_distribution", "consistency_m" (mean
+    and median of `temporal_consistency` at `every` frames, where 0 < every < 125)}; the
+    predictions are in the order of `data.frames.observable_rows`.
   """
   rows = frames_lib.observable_rows(rec, frames)
+  if section is not None:
+    x = frames_lib.image_centre(rec, rows)[:, 0]
+    rows = rows[(x >= section[0]) & (x <= section[1])]
   if len(rows) == 0:
     raise UserError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
   block = predictor.chunk_size  # one jitted call each: memory bounded by the samples of one
-  start = time.perf_counter()
+  start, cpu = time.perf_counter(), time.process_time()
   parts = [predict(predictor, obs_lib.from_recording(rec, rows[i:i + block]), seed=seed,
                    samples=samples)
            for i in tqdm(range(0, len(rows), block), desc="predict", unit="chunk",
                          disable=len(rows) <= block)]
   preds = concatenate(parts)
-  seconds = time.perf_counter() - start
+  seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
   summary = {"predictions": len(preds), "vehicles": int(len(np.unique(preds.track_id))),
              "frames": int(len(np.unique(preds.frame))), "seconds": round(seconds, 3),
+             "cpu_seconds": round(cpu, 3),
              "predictions_per_second": round(len(preds) / seconds, 2),
              "out_of_distribution": int(preds.out_of_distribution.sum())}
   if every is not None and 0 < every < preds.means.shape[2]:

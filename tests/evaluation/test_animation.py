@@ -4,6 +4,7 @@ and predicted hypotheses drawn where they are."""
 import io
 
 import numpy as np
+import pandas as pd
 import pytest
 from PIL import Image
 
@@ -64,3 +65,21 @@ def test_predictions_are_drawn_at_their_frame_only(scene):
 def test_no_frames_is_refused(scene):
   with pytest.raises(ValueError, match="no frames"):
     animation.render_gif(*scene, [])
+
+
+@pytest.mark.slow  # ~10 s of CPU compiling a predictor; make demo runs write_clip too
+def test_write_clip_predicts_the_section_and_writes_the_gif(tmp_path):
+  from tests.inference.test_retrace import _random_predictor
+  write_recording(tmp_path, 1)
+  path = tmp_path / "clip.gif"
+  # frames 101 .. 126 every 5; the middle 100 m of the road's extent in tracks.csv
+  summary = animation.write_clip(_random_predictor(chunk_size=4), tmp_path, 1, path,
+                                 start_s=4.0, seconds=1.0, section_m=100.0, num_samples=None)
+  assert Image.open(path).n_frames == 6
+  tracks = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracks"])
+  centre = tracks["x"] + 2.0
+  middle = (centre.min() + centre.max()) / 2
+  in_clip = tracks[tracks["frame"].isin(range(101, 127, 5))
+                   & (tracks["frame"] - tracks.groupby("id")["frame"].transform("min") >= 74)
+                   & ((tracks["x"] + 2.0 - middle).abs() <= 50.0)]
+  assert summary["predictions"] == len(in_clip) > 0
