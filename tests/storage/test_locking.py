@@ -41,6 +41,7 @@ def holder():
   for proc in procs:
     proc.kill()
     proc.wait()
+    proc.stdout.close()
 
 
 def _snapshot(root: Path) -> dict:

@@ -97,6 +97,7 @@ def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   finally:
     holder.kill()
     holder.wait()
+    holder.stdout.close()
   assert [code for code, _, _ in done] == [2, 2]  # process 1 got its own lock, yet stops
   assert f"pid {holder.pid} " in done[0][2]
   assert "locked by another process" in done[1][2]

@@ -28,7 +28,8 @@ def _train(workdir, epochs, seed=0, m=20, batch_size=4, **kw):
 
 
 def _epochs_logged(workdir):
-  return [json.loads(line)["epoch"] for line in (Path(workdir) / "metrics.jsonl").open()]
+  lines = (Path(workdir) / "metrics.jsonl").read_text().splitlines()
+  return [json.loads(line)["epoch"] for line in lines]
 
 
 def _job(workdir, devices=1, **args):
@@ -70,7 +71,7 @@ def test_padded_last_batch_matches_hand_computed_sgd(tmp_path):
       w = w - lr * 2 * x[rows].T @ r / len(rows)
     losses.append(sum(sq) / 5)  # epoch loss: mean over the 5 real examples
   np.testing.assert_allclose(np.asarray(state["w"]), w, rtol=1e-5)
-  logged = [json.loads(line) for line in (tmp_path / "metrics.jsonl").open()]
+  logged = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
   np.testing.assert_allclose([r["loss"] for r in logged], losses, rtol=1e-5)
   assert [r["step"] for r in logged] == [2, 4]
 
@@ -210,6 +211,7 @@ def test_sigkill_at_random_moments_then_rerun_ends_bit_identical(tmp_path):
     except subprocess.TimeoutExpired:
       proc.kill()  # SIGKILL
       proc.wait()
+    proc.stdout.close()
     assert proc.returncode == -9, f"attempt {attempt}: job ended before the kill ({delay=})"
   out, resumed = _run_job(tmp_path / "killed", **args)
   assert resumed, out.stderr[-2000:]

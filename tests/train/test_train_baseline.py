@@ -41,7 +41,7 @@ def _train(config, workdir):
 
 
 def _curve(workdir):
-  return [json.loads(line) for line in (workdir / "metrics.jsonl").open()]
+  return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
 def _params(workdir):
