@@ -44,6 +44,7 @@ from ml_collections.config_flags.config_flags import is_config_flag
 from cvmdx_jax import host_allocator
 from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.models import performance
+from cvmdx_jax.train import preemption
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
@@ -125,6 +126,9 @@ def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None
 
   try:
     app.run(guarded, flags_parser=_parse_flags)
+  except preemption.Stopped as e:  # training saved at a step boundary first
+    print(f"{_script()}: error: {e.message}; rerun to resume", file=sys.stderr)
+    sys.exit(e.code)
   except KeyboardInterrupt:
     print(f"{_script()}: error: interrupted; rerun to resume", file=sys.stderr)
     sys.exit(INTERRUPTED_STATUS)
