@@ -6,6 +6,8 @@
 
 import ml_collections
 
+from cvmdx_jax.errors import UserError
+
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("0", "false", "no", "off")
 
@@ -14,12 +16,12 @@ def _cast(key: str, text: str, default):
   if isinstance(default, bool):
     low = text.lower()
     if low not in _TRUE + _FALSE:
-      raise ValueError(f"config arg '{key}={text}': expected a boolean")
+      raise UserError(f"config arg '{key}={text}': expected a boolean")
     return low in _TRUE
   try:
     return type(default)(text)
   except ValueError as e:
-    raise ValueError(f"config arg '{key}={text}': expected {type(default).__name__}") from e
+    raise UserError(f"config arg '{key}={text}': expected {type(default).__name__}") from e
 
 
 def parse_arg(arg: str | None, **spec) -> ml_collections.ConfigDict:
@@ -42,10 +44,10 @@ def parse_arg(arg: str | None, **spec) -> ml_collections.ConfigDict:
     key, sep, text = item.partition("=")
     key = key.strip()
     if key not in spec:
-      raise ValueError(f"config arg '{item}': unknown key '{key}', known: {sorted(spec)}")
+      raise UserError(f"config arg '{item}': unknown key '{key}', known: {sorted(spec)}")
     if not sep:
       if not isinstance(spec[key], bool):
-        raise ValueError(f"config arg '{item}': '{key}' needs a value ({key}=...)")
+        raise UserError(f"config arg '{item}': '{key}' needs a value ({key}=...)")
       out[key] = True
     else:
       out[key] = _cast(key, text.strip(), spec[key])

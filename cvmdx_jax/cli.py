@@ -8,11 +8,10 @@ no traceback. User errors are
 - flag errors, found before `main` starts: an unknown flag, a value of the wrong type
   or out of range (`lower_bound=`, validators), a required flag left out, an unknown
   config preset or field, a config file that cannot be loaded, a config field that is
-  not finite or out of range (the ranges live in the typed configs: `typed_config`
-  builds one at parsing, e.g. `config.runs.DiffusionRunConfig.from_config`), a `*_dir`
-  config field that is not a directory;
-- in `main`: `app.UsageError` (stray arguments), a `ValueError` raised by this
-  repository's code (`DataError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
+  not finite or out of range (`cli_config`; the ranges live in the typed configs:
+  `typed_config` builds one at parsing), a `*_dir` config field that is not a directory;
+- in `main`: `app.UsageError` (stray arguments), an `errors.UserError` (the base of
+  `DataError`, `ConfigFieldError`, `IncompatibleRunsError`, `CheckpointMismatchError`,
   `WorkdirLockedError`, ...: their messages name the file or field) and a missing or
   unwritable path (`FileNotFoundError`, `NotADirectoryError`, `PermissionError`, ...).
 The machine failing ends the same way, exit status 2, wherever it is raised: an OSError
@@ -20,41 +19,48 @@ with errno ENOSPC, EDQUOT (disk or quota full), EROFS (read-only file system) or
 ENAMETOOLONG, also one from a flag's path check, and an error of orbax/tensorstore whose
 message carries such an errno (`[os_error_code='28']`, a checkpoint write on a full disk).
 SIGINT (Ctrl-C) prints `<script>: error: interrupted; rerun to resume` and exits with
-status 130; training resumes from its last checkpoint, other steps are redone.
-Anything else keeps its traceback, also a ValueError raised inside a library (a bad
-array handed to numpy or JAX is a bug of ours, not of the user).
+status 130, SIGTERM `<script>: error: terminated; rerun to resume` and status 143: both
+unwind `main` first (temporary files and directories are removed, child processes such
+as SUMO killed); training resumes from its last checkpoint, other steps are redone.
+After a signal the process ends with `os._exit` once its output is flushed: the exit
+handlers of JAX's and orbax's background threads can crash an interpreter that is
+interrupted mid-computation (a segfault, status 139, instead of 130).
+Anything else keeps its traceback, also a plain ValueError (a bad array handed to numpy
+or JAX is a bug of ours, not of the user).
 
 Validators for plain flags: `input_dirs`, `output_dirs`, `presets`, `int_list`.
 """
 
 import errno
-import math
 import os
 import re
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
 from absl import app, flags
-from ml_collections import config_flags
-# documented for outside use, but not exported by the package
 from ml_collections.config_flags.config_flags import is_config_flag
 
-from cvmdx_jax import host_allocator
+from cvmdx_jax import cli_config, host_allocator
 from cvmdx_jax.config.fields import ConfigFieldError
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import performance
 from cvmdx_jax.train import preemption
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
-_REPO = Path(__file__).resolve().parents[1]
-_OUR_CODE = ("cvmdx_jax", "configs", "experiments")
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
                 PermissionError)
 _FULL = (errno.ENOSPC, errno.EDQUOT)
 _MACHINE_ERRNOS = (*_FULL, errno.EROFS, errno.ENAMETOOLONG)
 INTERRUPTED_STATUS = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+TERMINATED_STATUS = 143  # 128 + SIGTERM
+
+
+class Terminated(BaseException):
+  """SIGTERM, raised in the main thread like KeyboardInterrupt for SIGINT."""
 
 
 def _script() -> str:
@@ -67,27 +73,9 @@ def fail(message: str) -> NoReturn:
   sys.exit(USAGE_STATUS)
 
 
-def _ours(exc: BaseException) -> bool:
-  """Whether `exc` was raised by (or is a class of) this repository's code."""
-  if type(exc).__module__.split(".")[0] in _OUR_CODE:
-    return True
-  tb = exc.__traceback__
-  while tb is not None and tb.tb_next is not None:
-    tb = tb.tb_next
-  if tb is None:
-    return False
-  try:
-    parts = Path(tb.tb_frame.f_code.co_filename).resolve().relative_to(_REPO).parts
-  except ValueError:  # outside the repository (a library, or .venv resolved elsewhere)
-    return False
-  return parts[0] in _OUR_CODE
-
-
 def is_user_error(exc: BaseException) -> bool:
   """True for the user errors of the module docstring."""
-  if isinstance(exc, (app.UsageError, *_PATH_ERRORS)):
-    return True
-  return isinstance(exc, ValueError) and _ours(exc)
+  return isinstance(exc, (app.UsageError, UserError, *_PATH_ERRORS))
 
 
 def machine_failure(exc: BaseException) -> str | None:
@@ -103,6 +91,34 @@ def machine_failure(exc: BaseException) -> str | None:
   return f"{exc}{hint if code in _FULL else ''}"
 
 
+_SIGNALLED: list[int] = []  # the signals received by this process (`_on_signal`)
+
+
+def _on_signal(signum, frame) -> None:
+  """Handler of SIGINT and SIGTERM: remembers the signal, raises in the main thread."""
+  del frame
+  _SIGNALLED.append(signum)
+  raise KeyboardInterrupt if signum == signal.SIGINT else Terminated
+
+
+def _stop(status: int, what: str) -> NoReturn:
+  """Prints the signal's line and exits with `status`; after a real signal without the
+  interpreter's exit handlers (module docstring)."""
+  print(f"{_script()}: error: {what}; rerun to resume", file=sys.stderr)
+  if not _SIGNALLED:  # raised in-process (a test): a plain exit
+    sys.exit(status)
+  sys.stdout.flush()
+  sys.stderr.flush()
+  os._exit(status)  # pylint: disable=protected-access
+
+
+def _handle_signals() -> None:
+  """Installs `_on_signal` for SIGINT (where not ignored) and SIGTERM."""
+  if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+    signal.signal(signal.SIGINT, _on_signal)
+  signal.signal(signal.SIGTERM, _on_signal)
+
+
 def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None:
   """`absl.app.run(main)` with the user-error handling of the module docstring; with
   `allocator` (the training entry points) in a process re-executed once with the
@@ -112,7 +128,7 @@ def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None
     performance.current()  # a bad CVMDX_WINOGRAD etc. is one line, before any work
     if allocator:
       host_allocator.reexec_with_allocator()
-  except ValueError as e:
+  except UserError as e:
     fail(str(e))
 
   def guarded(argv):
@@ -124,39 +140,19 @@ def run(main: Callable[[list[str]], object], *, allocator: bool = False) -> None
         raise
       fail(message)
 
+  _handle_signals()
   try:
     app.run(guarded, flags_parser=_parse_flags)
   except preemption.Stopped as e:  # training saved at a step boundary first
-    print(f"{_script()}: error: {e.message}; rerun to resume", file=sys.stderr)
-    sys.exit(e.code)
+    _stop(e.code, e.message)
   except KeyboardInterrupt:
-    print(f"{_script()}: error: interrupted; rerun to resume", file=sys.stderr)
-    sys.exit(INTERRUPTED_STATUS)
+    _stop(INTERRUPTED_STATUS, "interrupted")
+  except Terminated:
+    _stop(TERMINATED_STATUS, "terminated")
 
 
-# ---------------------------------------------------------------- flag parsing
-
-
-def _flag_message(error: Exception) -> str:
-  """One line of an absl flag error; a config file's traceback becomes its last line."""
-  lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-  if "Traceback (most recent call last):" in lines:
-    head = lines[0].split("Error whilst parsing config file:")[0].rstrip()
-    lines = [head, re.sub(r"^[\w.]+: ", "", lines[-1])]
-  return re.sub(r"^flag (--)", r"\1", " ".join(lines))
-
-
-def _unknown_field(argv: list[str], error: LookupError | AttributeError) -> str | None:
-  """The `--config.a.b` argument that named a field the config does not have, if any."""
-  text = str(error.args[0]) if error.args else ""
-  for arg in argv[1:]:
-    name = arg.split("=", 1)[0]
-    head, dot, path = name.lstrip("-").partition(".")
-    if (dot and arg.startswith("--") and head in FLAGS
-        and is_config_flag(FLAGS[head])
-        and (text.strip("'\"") in path.split(".") or text.endswith(path))):
-      return name
-  return None
+def _reraise(error: Exception) -> NoReturn:
+  raise error
 
 
 def _parse_flags(argv: list[str]) -> list[str]:
@@ -164,59 +160,22 @@ def _parse_flags(argv: list[str]) -> list[str]:
   try:
     rest = FLAGS(argv)
   except flags.Error as e:
-    fail(_flag_message(e))
+    fail(cli_config.flag_message(e))
   except (AttributeError, KeyError) as e:  # ml_collections: an override of no field
-    name = _unknown_field(argv, e)
-    if name is None:
-      raise
-    fail(f"{name}: no such config field")
+    name = cli_config.unknown_field(argv, e)
+    if name is not None:
+      fail(f"{name}: no such config field")
+    fail(cli_config.load_failure(argv, e) or _reraise(e))
+  except Exception as e:  # pylint: disable=broad-except
+    fail(cli_config.load_failure(argv, e) or _reraise(e))
   for name in list(FLAGS):
     if is_config_flag(FLAGS[name]) and FLAGS[name].value is not None:
-      problem = check_config(name)
+      problem = cli_config.check_config(name)
       if problem:
         fail(problem)
   for name, typed in _TYPED.items():
     typed.build(name)
   return rest
-
-
-# ------------------------------------------------------------- config fields
-
-
-def _is_number(v) -> bool:
-  return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _leaves(config, prefix: str = ""):
-  """(dotted path, value) of every non-ConfigDict field of `config`."""
-  for key, value in config.items():
-    if hasattr(value, "items"):
-      yield from _leaves(value, f"{prefix}{key}.")
-    else:
-      yield f"{prefix}{key}", value
-
-
-def _value_problem(path: str, value, default) -> str | None:
-  """What is wrong with field `path` = `value` (None: nothing); `default` is its value
-  in the config file without overrides."""
-  if isinstance(default, tuple) and default and all(map(_is_number, default)):
-    if not isinstance(value, tuple) or not all(map(_is_number, value)):
-      return f"expected a tuple of numbers like {default}"
-  values = value if isinstance(value, tuple) else (value,)
-  if any(isinstance(v, float) and not math.isfinite(v) for v in values):
-    return "must be finite"
-  return None
-
-
-def _dir_problem(path: str, value) -> str | None:
-  """A non-empty `*_dir` field must name a directory (they are all inputs)."""
-  if path.rsplit(".", 1)[-1].endswith("_dir") and isinstance(value, str) and value:
-    try:
-      if not Path(value).is_dir():
-        return "no such directory"
-    except OSError as e:  # e.g. a path component longer than the file system allows
-      return f"no such directory ({e.strerror})"
-  return None
 
 
 class TypedConfig:
@@ -246,30 +205,9 @@ _TYPED: dict[str, TypedConfig] = {}
 
 def typed_config(name: str, from_config: Callable) -> TypedConfig:
   """Registers `from_config(<value of config flag --name>)`, run when `run` parses the
-  flags (after the checks of `check_config`); returns the holder of its result."""
+  flags (after the checks of `cli_config.check_config`); returns the holder of its result."""
   _TYPED[name] = TypedConfig(from_config)
   return _TYPED[name]
-
-
-def check_config(name: str) -> str | None:
-  """The first problem of config flag `--name` (load failure, a field's type or a value
-  that is not finite, a `*_dir` field that is not a directory) as a message naming the
-  field; None if none. Ranges are the typed config's (`typed_config`)."""
-  flag = FLAGS[name]
-  filename = config_flags.get_config_filename(flag)
-  try:
-    config = dict(_leaves(flag.value))
-  except OSError as e:  # config_flags defers a file that failed to load to first use
-    last = str(e).strip().splitlines()[-1].strip()
-    return f"--{name}={filename}: cannot load the config file ({last})"
-  defaults = dict(_leaves(flag.parser.parse(filename)))
-  problems = [(path, _value_problem(path, value, defaults.get(path)))
-              for path, value in config.items()]
-  problems += [(path, _dir_problem(path, value)) for path, value in config.items()]
-  for path, problem in problems:
-    if problem:
-      return f"--{name}.{path}={config[path]}: {problem}"
-  return None
 
 
 # ---------------------------------------------------------------- validators

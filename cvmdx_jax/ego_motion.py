@@ -45,6 +45,7 @@ the unconditional branch drops the token only; both branches see the same featur
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 
 # name -> (centre, scale) of the normalised features, in the order of the table above
 FEATURES = (
@@ -157,7 +158,7 @@ def ego_features(xi, mask):
 def check_conditioning(conditioning: str) -> str:
   """Returns `conditioning`; ValueError naming diffusion.conditioning if unknown."""
   if conditioning not in CONDITIONINGS:
-    raise ValueError(f"diffusion.conditioning must be one of {CONDITIONINGS}, "
+    raise UserError(f"diffusion.conditioning must be one of {CONDITIONINGS}, "
                      f"got {conditioning!r}")
   return conditioning
 

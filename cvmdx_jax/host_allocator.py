@@ -32,6 +32,8 @@ import os
 import sys
 from collections.abc import Mapping
 
+from cvmdx_jax.errors import UserError
+
 OPT_OUT = "CVMDX_ALLOCATOR"  # the option; "system": leave the allocator alone
 CHOICES = ("auto", "jemalloc", "glibc", "system")
 APPLIED = "CVMDX_ALLOCATOR_APPLIED"  # set in the re-executed process
@@ -77,7 +79,7 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
   """
   choice = environ.get(OPT_OUT, "") or "auto"
   if choice not in CHOICES:
-    raise ValueError(f"{OPT_OUT}={choice!r}: expected one of {', '.join(CHOICES)}")
+    raise UserError(f"{OPT_OUT}={choice!r}: expected one of {', '.join(CHOICES)}")
   if (choice == "system" or environ.get(APPLIED) or not platform.startswith("linux")
       or (choice == "auto" and accelerator_requested(environ))):
     return None
@@ -87,7 +89,7 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
     env["LD_PRELOAD"] = _joined(environ, "LD_PRELOAD", jemalloc, ":")
     env["MALLOC_CONF"] = _joined(environ, "MALLOC_CONF", JEMALLOC_CONF, ",")
   elif choice == "jemalloc":
-    raise ValueError(f"{OPT_OUT}=jemalloc: libjemalloc.so.2 is not in {', '.join(JEMALLOC_PATHS)}"
+    raise UserError(f"{OPT_OUT}=jemalloc: libjemalloc.so.2 is not in {', '.join(JEMALLOC_PATHS)}"
                      f" (install libjemalloc2, or name it in {JEMALLOC_ENV})")
   else:
     env["GLIBC_TUNABLES"] = _joined(environ, "GLIBC_TUNABLES", GLIBC_TUNABLES, ":")
@@ -98,7 +100,7 @@ def _find_jemalloc(environ: Mapping[str, str], exists) -> str | None:
   """`CVMDX_JEMALLOC` (checked) or the first of `JEMALLOC_PATHS` that exists, else None."""
   given = environ.get(JEMALLOC_ENV)
   if given and not exists(given):
-    raise ValueError(f"{JEMALLOC_ENV}={given}: no such file")
+    raise UserError(f"{JEMALLOC_ENV}={given}: no such file")
   return given or next((p for p in JEMALLOC_PATHS if exists(p)), None)
 
 

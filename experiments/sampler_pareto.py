@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import cli
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
 from cvmdx_jax.evaluation import scoring
@@ -68,7 +69,7 @@ def choose_default(rows: list[dict], tolerance: float, criteria=("mean_ade",),
   """
   ref = [r for r in rows if (r["sampler"], r["steps"]) == reference]
   if not ref:
-    raise ValueError(f"sampler_pareto: the reference setting {reference} was not evaluated")
+    raise UserError(f"sampler_pareto: the reference setting {reference} was not evaluated")
   ok = lambda r: all(r[c] <= (1.0 + tolerance) * ref[0][c] for c in criteria)
   return min(filter(ok, rows), key=lambda r: (r["evaluations"], r["mean_ade"]))
 
@@ -111,7 +112,7 @@ def sample_rows() -> tuple[list[dict], str]:
   settings = ([("ddim", int(s)) for s in _DDIM.value]
               + [("dpmpp2m", int(s)) for s in _DPM.value])
   if REFERENCE not in settings:
-    raise ValueError(f"--ddim_steps must include {REFERENCE[1]} (the reference setting)")
+    raise UserError(f"--ddim_steps must include {REFERENCE[1]} (the reference setting)")
   data = dataset.load_split(_DATA.value, _SPLIT.value)
   if _NUM.value:
     data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
@@ -134,15 +135,15 @@ def sample_rows() -> tuple[list[dict], str]:
 
 def main(argv):
   if len(argv) > 1:
-    raise ValueError(f"sampler_pareto: unexpected arguments {argv[1:]}")
+    raise UserError(f"sampler_pareto: unexpected arguments {argv[1:]}")
   # checked here, not by flags.mark_flags_as_required: tests import this module, and a
   # required flag would then break every other absl entry point parsed in that process
   missing = [f.name for f in (_TOKENIZER, _DIFFUSION, _DATA, _OUT) if not f.value]
   if missing:
-    raise ValueError(f"sampler_pareto: flags {missing} are required")
+    raise UserError(f"sampler_pareto: flags {missing} are required")
   unknown = sorted(set(_CRITERIA.value) - set(COLUMNS))
   if unknown:
-    raise ValueError(f"--criteria: unknown {unknown}; choose from {COLUMNS}")
+    raise UserError(f"--criteria: unknown {unknown}; choose from {COLUMNS}")
   if _FROM_JSON.value:
     saved = json.loads(Path(_FROM_JSON.value).read_text())
     rows, note = saved["rows"], saved["note"]

@@ -22,7 +22,9 @@ import pytest
 
 from configs import diffusion as diffusion_config
 from cvmdx_jax import cli
-from cvmdx_jax.storage import locking
+from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.errors import UserError
+from cvmdx_jax.storage import atomic, locking
 from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[1]
@@ -240,6 +242,24 @@ def test_value_error_of_our_code_is_a_user_error(monkeypatch, capsys):
     diffusion_config.get_config("nosuch")
   assert _run(monkeypatch, main) == 2
   assert capsys.readouterr().err.startswith("evaluate: error: config arg 'nosuch'")
+
+
+def test_a_user_error_raised_anywhere_is_one_line(monkeypatch, capsys):
+  """What makes an error the user's is its class (errors.UserError), not where it was
+  raised: here a test module, outside the package."""
+  assert _run(monkeypatch, _raiser(DataError("/d/01_tracks.csv", "bad", row=3))) == 2
+  assert capsys.readouterr().err == "evaluate: error: file /d/01_tracks.csv, row 3: bad\n"
+
+
+def test_a_plain_value_error_of_our_code_keeps_its_traceback(monkeypatch, tmp_path):
+  """A plain ValueError of the package is a bug (here a misuse of atomic.writing)."""
+  def main(argv):
+    with atomic.writing(tmp_path / "x", mode="a"):
+      pass
+  monkeypatch.setattr("sys.argv", ["prog"])
+  with pytest.raises(ValueError, match="mode='a'") as info:
+    cli.run(main)
+  assert not isinstance(info.value, UserError)
 
 
 @pytest.mark.parametrize("bug", [lambda: json.loads("{"), lambda: {}["key"]])

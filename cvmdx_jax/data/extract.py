@@ -23,6 +23,7 @@ import numpy as np
 from cvmdx_jax import constants, sharding, vmm
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.errors import UserError
 
 _OBS_OFFSETS = np.arange(-(constants.T_OBS - 1), 1)  # rows t0-74 .. t0
 _FUTURE_OFFSETS = np.arange(1, constants.T_PRED + 1)  # rows t0+1 .. t0+125
@@ -52,7 +53,7 @@ def as_config(config) -> ExtractionConfig:
   names = {f.name for f in dataclasses.fields(ExtractionConfig)}
   unknown = sorted(set(values) - names)
   if unknown:
-    raise ValueError(f"extraction config: unknown keys {unknown}")
+    raise UserError(f"extraction config: unknown keys {unknown}")
   values["lc_offsets_s"] = tuple(values.get("lc_offsets_s", ExtractionConfig.lc_offsets_s))
   return ExtractionConfig(**values)
 

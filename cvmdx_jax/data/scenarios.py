@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 
 # field name -> (trailing shape, dtype)
 FIELDS = {
@@ -88,28 +89,28 @@ class Scenarios:
     """
     unknown = sorted(set(fields) - set(FIELDS))
     if unknown:
-      raise ValueError(f"Scenarios.validate: unknown field(s) {unknown}")
+      raise UserError(f"Scenarios.validate: unknown field(s) {unknown}")
     m = len(self)
     for name, (shape, dtype) in FIELDS.items():
       if name not in fields:
         continue
       value = np.asarray(getattr(self, name))
       if value.shape != (m, *shape):
-        raise ValueError(f"{source}: field '{name}' has shape {value.shape}, "
+        raise UserError(f"{source}: field '{name}' has shape {value.shape}, "
                          f"expected {(m, *shape)}")
       if dtypes and value.dtype != dtype:
-        raise ValueError(f"{source}: field '{name}' has dtype {value.dtype}, "
+        raise UserError(f"{source}: field '{name}' has dtype {value.dtype}, "
                          f"expected {np.dtype(dtype)}")
       if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
-        raise ValueError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
+        raise UserError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
     if "v0" in fields and np.any(self.v0 < 0):
       bad = int(np.argmax(self.v0 < 0))
-      raise ValueError(f"{source}: field 'v0' is negative ({self.v0[bad]} m/s, scenario {bad})")
+      raise UserError(f"{source}: field 'v0' is negative ({self.v0[bad]} m/s, scenario {bad})")
     if "label" in fields and np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
-      raise ValueError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
+      raise UserError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
     if not allow_empty and m == 0:
-      raise ValueError(f"{source}: no scenarios")
+      raise UserError(f"{source}: no scenarios")
     return self
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import highd, sumo_network
 
@@ -129,7 +130,7 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
     out_dir: destination directory.
   """
   if 2 * plan.road.lanes + 3 >= 16:
-    raise ValueError(f"sumo export: {plan.road.lanes} lanes per direction, at most 6")
+    raise UserError(f"sumo export: {plan.road.lanes} lanes per direction, at most 6")
   recording_id = plan.recording_id
   t = _tracks_from_fcd(fcd, cfg, plan)
   upper, lower = _image_markings(cfg, plan.road)

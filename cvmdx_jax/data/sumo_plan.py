@@ -24,6 +24,7 @@ import json
 
 import numpy as np
 
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
 
 SPLITS = ("train", "val", "test", "test_ood", "val_ood")  # val_ood last: adding it renumbers none
@@ -118,7 +119,7 @@ def _types(rng, ranges, vclass: str, count: int, share: float, spread: float) ->
           name=f"{vclass.lower()}{k}", vclass=vclass, probability=share / count,
           desired_max_speed_ms=cap / 3.6 if cap else 0.0, **values))
     except TypeError as err:
-      raise ValueError(f"sumo.{vclass.lower()}: {err} (expected the DriverType fields)") from err
+      raise UserError(f"sumo.{vclass.lower()}: {err} (expected the DriverType fields)") from err
   return out
 
 
@@ -139,7 +140,7 @@ def draw(cfg, recording_id: int, split: str, index: int) -> RecordingPlan:
   truck_share = _uniform(rng, cfg.truck_share)
   car_following = str(cfg.car_following[rng.integers(len(cfg.car_following))])
   if car_following not in CAR_FOLLOWING:
-    raise ValueError(f"sumo.car_following: '{car_following}' is not one of {CAR_FOLLOWING}")
+    raise UserError(f"sumo.car_following: '{car_following}' is not one of {CAR_FOLLOWING}")
   types = (_types(rng, cfg.car, "Car", cfg.car_types, 1.0 - truck_share, cfg.type_spread)
            + _types(rng, cfg.truck, "Truck", cfg.truck_types, truck_share, cfg.type_spread))
   return RecordingPlan(recording_id, split, duration, road, flow, truck_share, car_following,

@@ -33,6 +33,7 @@ import numpy as np
 from cvmdx_jax.diffusion import param
 from cvmdx_jax.diffusion.samplers import initial_noise, predict_x0_eps
 from cvmdx_jax.diffusion.schedule import Schedule
+from cvmdx_jax.errors import UserError
 
 
 def student_cond(ego, w):
@@ -50,7 +51,7 @@ def distilled_timesteps(num_steps: int, steps: int) -> np.ndarray:
     (S,) int32, strictly decreasing from T - 1.
   """
   if not 1 <= steps < num_steps:
-    raise ValueError(f"distilled steps must be in [1, {num_steps - 1}], got {steps}")
+    raise UserError(f"distilled steps must be in [1, {num_steps - 1}], got {steps}")
   i = np.arange(steps, dtype=np.int64)
   return ((2 * (num_steps - 1) * (steps - i) + steps) // (2 * steps)).astype(np.int32)
 

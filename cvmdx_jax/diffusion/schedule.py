@@ -7,6 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cvmdx_jax.errors import UserError
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +49,7 @@ def ddim_timesteps(num_steps: int, steps: int) -> np.ndarray:
     (S,) int32, first element T-1, last element 0.
   """
   if not 1 <= steps <= num_steps:
-    raise ValueError(f"DDIM steps must be in [1, {num_steps}], got {steps}")
+    raise UserError(f"DDIM steps must be in [1, {num_steps}], got {steps}")
   grid = np.round(np.linspace(0, num_steps - 1, steps)).astype(np.int32)
   return grid[::-1].copy()
 
@@ -61,6 +63,6 @@ def official_ddim_timesteps(num_steps: int, steps: int) -> tuple[np.ndarray, np.
     (t, t_prev), each (steps - 1,) int32.
   """
   if not 2 <= steps <= num_steps:
-    raise ValueError(f"official DDIM steps must be in [2, {num_steps}], got {steps}")
+    raise UserError(f"official DDIM steps must be in [2, {num_steps}], got {steps}")
   grid = np.floor(np.linspace(0, num_steps - 1, steps)).astype(np.int32)[1:][::-1]
   return grid.copy(), np.append(grid[1:], 0).astype(np.int32)

@@ -21,6 +21,7 @@ import numpy as np
 
 from cvmdx_jax.diffusion.samplers import predict_x0_eps
 from cvmdx_jax.diffusion.schedule import Schedule
+from cvmdx_jax.errors import UserError
 
 
 def solver_timesteps(num_steps: int, steps: int) -> np.ndarray:
@@ -31,7 +32,7 @@ def solver_timesteps(num_steps: int, steps: int) -> np.ndarray:
     (S,) int32, strictly decreasing.
   """
   if not 1 <= steps < num_steps:
-    raise ValueError(f"solver steps must be in [1, {num_steps - 1}], got {steps}")
+    raise UserError(f"solver steps must be in [1, {num_steps - 1}], got {steps}")
   return np.round(np.linspace(num_steps - 1, 0, steps + 1)[:steps]).astype(np.int32)
 
 

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import performance
 
 
@@ -46,7 +47,7 @@ def _group_sum(v, groups: int):
 
 def _check_groups(channels: int, groups: int, who: str) -> None:
   if channels % groups:
-    raise ValueError(f"{who}: {channels} channels are not divisible by {groups} groups")
+    raise UserError(f"{who}: {channels} channels are not divisible by {groups} groups")
 
 
 def _statistics(x, groups: int, epsilon: float):

@@ -33,6 +33,8 @@ from collections.abc import Callable, Iterator, Mapping
 
 import jax
 
+from cvmdx_jax.errors import UserError
+
 CHOICES = ("auto", "on", "off")
 ENVIRONMENT = {"winograd": "CVMDX_WINOGRAD", "group_norm_backward": "CVMDX_GROUP_NORM_BACKWARD"}
 FAST_PLATFORM = "cpu"  # where "auto" takes the fast paths
@@ -40,7 +42,7 @@ FAST_PLATFORM = "cpu"  # where "auto" takes the fast paths
 
 def _check(value: str, name: str) -> None:
   if value not in CHOICES:
-    raise ValueError(f"{name}={value!r}: expected one of {', '.join(CHOICES)}")
+    raise UserError(f"{name}={value!r}: expected one of {', '.join(CHOICES)}")
 
 
 @dataclasses.dataclass(frozen=True)

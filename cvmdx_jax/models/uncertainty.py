@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 
 
 @jax.tree_util.register_dataclass
@@ -54,7 +55,7 @@ def fit_gaussians(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
     `Gaussians` with invertible covariances.
   """
   if shrinkage <= 0 or ridge < 0:
-    raise ValueError(f"uncertainty: shrinkage ({shrinkage}) must be > 0 and ridge "
+    raise UserError(f"uncertainty: shrinkage ({shrinkage}) must be > 0 and ridge "
                      f"({ridge}) >= 0")
   z_hat = jnp.asarray(z_hat, jnp.float32)
   codebook = jnp.asarray(codebook, jnp.float32)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
+from cvmdx_jax.errors import UserError
 
 
 def project(points: jax.Array, dim: int) -> jax.Array:
@@ -31,7 +32,7 @@ def project(points: jax.Array, dim: int) -> jax.Array:
   """
   num_points, num_features = points.shape[-2:]
   if not 1 <= dim <= min(num_points, num_features):
-    raise ValueError(
+    raise UserError(
         f"pca_dim must be in [1, min(N, D)] = [1, {min(num_points, num_features)}] "
         f"for points of shape {points.shape}, got {dim}")
   centred = points - jnp.mean(points, axis=-2, keepdims=True)

@@ -22,13 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import checksums, identity
 from cvmdx_jax.models.uncertainty import Gaussians
 
 GAUSSIANS_NAME = "gaussians"
 
 
-class TokensMismatchError(ValueError):
+class TokensMismatchError(UserError):
   """Saved tokens do not belong to the dataset or tokeniser they are loaded for."""
 
 
@@ -73,7 +74,7 @@ def _read_npz(path: Path, names: tuple[str, ...]) -> tuple[dict, dict]:
   except ValueError as e:
     raise checksums.CorruptRunError(f"{path}: unreadable metadata ({e})") from e
   if missing:
-    raise ValueError(f"{path}: missing field(s) {missing}")
+    raise UserError(f"{path}: missing field(s) {missing}")
   return arrays, metadata
 
 
@@ -81,7 +82,7 @@ def save_tokens(path: str | os.PathLike, tokens: Tokens, metadata: dict) -> None
   """Writes tokens + metadata (JSON-able dict) atomically to `path` (.npz)."""
   m = tokens.q.shape[0]
   if tokens.z_hat.shape[0] != m or tokens.delta.shape != (m,):
-    raise ValueError(f"{path}: q {tokens.q.shape}, z_hat {tokens.z_hat.shape} and delta "
+    raise UserError(f"{path}: q {tokens.q.shape}, z_hat {tokens.z_hat.shape} and delta "
                      f"{tokens.delta.shape} disagree on the number of scenarios")
   arrays = {"q": np.asarray(tokens.q, np.int32), "z_hat": np.asarray(tokens.z_hat, np.float32),
             "delta": np.asarray(tokens.delta, np.float32)}

@@ -26,13 +26,14 @@ from typing import Any
 
 import numpy as np
 
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
 
 MANIFEST = "checksums.json"
 _CHUNK = 1 << 20
 
 
-class CorruptRunError(ValueError):
+class CorruptRunError(UserError):
   """A run file's content differs from its recorded checksum, or cannot be parsed."""
 
 

@@ -25,12 +25,14 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from cvmdx_jax.errors import UserError
+
 LOCK_NAME = ".lock"
 
 _held: dict[Path, list] = {}  # lock file -> [fd, nesting depth] of this process
 
 
-class WorkdirError(ValueError):
+class WorkdirError(UserError):
   """A workdir cannot be used (not creatable, no lock file possible)."""
 
 
