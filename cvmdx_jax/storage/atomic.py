@@ -9,11 +9,15 @@ the process umask, e.g. 0o644 under umask 022), so results can be shared as usua
 
 Format helpers: `write_bytes`, `write_text`, `write_json` (text of `json_text`),
 `write_jsonl`, `write_npz`, `write_mat`; `write_all` writes several files as a group (all
-new or all old); `append_jsonl` appends one line to a log.
+new or all old); `append_jsonl` appends one line to a log. JSON is strict (RFC 8259, what
+every parser reads): a float that is NaN or infinite (a metric of an empty class, a
+diverged loss) is written as `null`, never as the bare `NaN` / `Infinity` of Python's
+json module.
 """
 
 import contextlib
 import json
+import math
 import os
 import secrets
 from collections.abc import Iterable, Iterator
@@ -71,9 +75,26 @@ def write_all(files: dict[str | os.PathLike, bytes]) -> None:
       f.flush()
 
 
+def _finite_json(value: Any) -> Any:
+  """`value` with every non-finite float (also a numpy float64) in its dicts, lists and
+  tuples replaced by None (JSON null)."""
+  if isinstance(value, float):
+    return value if math.isfinite(value) else None
+  if isinstance(value, dict):
+    return {k: _finite_json(v) for k, v in value.items()}
+  if isinstance(value, (list, tuple)):
+    return [_finite_json(v) for v in value]
+  return value
+
+
+def _dumps(value: Any, **kwargs) -> str:
+  """Strict JSON text of `value` (module docstring)."""
+  return json.dumps(_finite_json(value), allow_nan=False, **kwargs)
+
+
 def json_text(value: Any, **kwargs) -> str:
-  """`value` as JSON (indent 2 unless `kwargs` say otherwise) and a final newline."""
-  return json.dumps(value, **{"indent": 2, **kwargs}) + "\n"
+  """`value` as strict JSON (indent 2 unless `kwargs` say otherwise) and a final newline."""
+  return _dumps(value, **{"indent": 2, **kwargs}) + "\n"
 
 
 def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
@@ -83,7 +104,7 @@ def write_json(path: str | os.PathLike, value: Any, **kwargs) -> None:
 
 def write_jsonl(path: str | os.PathLike, records: Iterable[Any]) -> None:
   """Rewrites `path` with one compact JSON line per record."""
-  write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+  write_text(path, "".join(_dumps(r) + "\n" for r in records))
 
 
 def append_jsonl(path: str | os.PathLike, record: Any) -> None:
@@ -92,7 +113,7 @@ def append_jsonl(path: str | os.PathLike, record: Any) -> None:
   Earlier lines are never touched; a crash can at most leave the new line cut short,
   which readers of the log skip (e.g. `train.loop` on resume, via `write_jsonl`).
   """
-  data = (json.dumps(record) + "\n").encode()
+  data = (_dumps(record) + "\n").encode()
   fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
   try:
     while data:
