@@ -25,7 +25,6 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import identity
 
 DATA_AXIS = "data"
@@ -79,7 +78,8 @@ def detect_cluster(launcher: str, timeout_s: int = 300) -> tuple[str, int, int, 
     UserError: the launcher's environment is incomplete (e.g. no `kubernetes` package).
   """
   from jax._src import clusters  # pylint: disable=import-outside-toplevel
-  kinds = {kind.__name__: kind for kind in clusters.ClusterEnv._cluster_types}  # pylint: disable=protected-access
+  known = clusters.ClusterEnv._cluster_types  # pylint: disable=protected-access
+  kinds = {kind.__name__: kind for kind in known}
   kind, env = kinds[_JAX_CLUSTERS[launcher]], os.environ
   if not kind.is_env_present():
     hint = " (pip install kubernetes)" if launcher == "k8s" else ""

@@ -189,7 +189,9 @@ def test_mpirun_is_detected_through_jax(monkeypatch):
 
 
 def test_kubernetes_indexed_job_is_detected_through_jax(monkeypatch):
-  from types import ModuleType, SimpleNamespace as NS
+  from types import ModuleType
+  from types import SimpleNamespace as NS
+
   from jax._src.clusters import k8s_cluster
   pod = NS(metadata=NS(name="train-1-x7", labels={"job-name": "train"},
                        owner_references=[NS(controller=True, kind="Job")]),
