@@ -5,7 +5,7 @@ import dataclasses
 from typing import ClassVar
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.config.fields import BELOW_ONE, POSITIVE, ConfigFieldError, check_ranges
+from cvmdx_jax.config.fields import AT_LEAST_TWO, BELOW_ONE, POSITIVE, ConfigFieldError, check_ranges
 
 PAPER_SCALE = (constants.ACCEL_SCALE, constants.YAW_RATE_SCALE)
 
@@ -40,7 +40,7 @@ class DenoiserConfig:
   intent_conditioning: bool = False
 
   RANGES: ClassVar = {
-      "num_steps": POSITIVE,
+      "num_steps": AT_LEAST_TWO,
       "cond_drop_prob": BELOW_ONE,
       "control_scale": POSITIVE,
       "residual_decay_s": POSITIVE,

@@ -15,6 +15,7 @@ points (`cvmdx_jax.cli`) print as `--config.<field>=<value>: <problem>`.
 
 import dataclasses
 import math
+import numbers
 import typing
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
@@ -48,6 +49,7 @@ POSITIVE = Range("> 0", lambda v: v > 0)
 NON_NEGATIVE = Range(">= 0", lambda v: v >= 0)
 FRACTION = Range("in [0, 1]", lambda v: 0 <= v <= 1)
 BELOW_ONE = Range("in [0, 1)", lambda v: 0 <= v < 1)
+AT_LEAST_TWO = Range(">= 2", lambda v: v >= 2)
 SEED = Range("in [0, 2**32)", lambda v: 0 <= v < 2**32)  # jax.random.key wraps larger seeds
 
 
@@ -69,6 +71,18 @@ def check_ranges(obj: Any, ranges: Mapping[str, Range]) -> None:
       raise ConfigFieldError(name, value, "must be finite")
     if not all(rule.test(v) for v in values):
       raise ConfigFieldError(name, value, f"must be {rule.text}")
+
+
+def check_integers(obj: Any, names: tuple[str, ...]) -> None:
+  """Makes each field of `names` a plain int (a numpy integer or a whole float such as
+  9.0 is accepted); ConfigFieldError for one that is not a whole number (9.5, "9", True)."""
+  for name in names:
+    value = getattr(obj, name)
+    whole = isinstance(value, numbers.Integral) or (
+        isinstance(value, float) and math.isfinite(value) and value == int(value))
+    if isinstance(value, bool) or not whole:
+      raise ConfigFieldError(name, value, "must be a whole number")
+    object.__setattr__(obj, name, int(value))
 
 
 def _is_section(value: Any) -> bool:

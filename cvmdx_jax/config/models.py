@@ -5,7 +5,8 @@ import dataclasses
 import math
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.config.fields import BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE, check_ranges
+from cvmdx_jax.config.fields import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE,
+                                     ConfigFieldError, check_ranges)
 from cvmdx_jax.errors import UserError
 
 
@@ -173,12 +174,32 @@ class UNetConfig:
           f"{self.intent_features}: the intent classifier needs both, and reads "
           f"the first intent_features of the cond_dim={self.cond_dim} inputs"
       )
+    self._check_levels()
     factor = 2 ** (len(self.channel_mult) - 1)
     if self.padded_length % factor or self.padded_length < self.length:
       raise UserError(
           f"padded_length={self.padded_length} must be >= length={self.length} "
           f"and divisible by {factor}"
       )
+
+  def _check_levels(self) -> None:
+    """At least one level; attention only at levels that exist; every level's channels
+    split into `groups` groups and each attended level's (and the middle block's, the
+    coarsest) into `num_heads` heads."""
+    levels = len(self.channel_mult)
+    if not levels:
+      raise ConfigFieldError("channel_mult", self.channel_mult, "needs at least one level")
+    if any(level >= levels for level in self.attention_levels):
+      raise ConfigFieldError("attention_levels", self.attention_levels,
+                             f"the levels are 0..{levels - 1} (one per channel_mult entry)")
+    widths = [self.base_channels * m for m in self.channel_mult]
+    for name, parts, attended in (
+        ("groups", self.groups, range(levels)),
+        ("num_heads", self.num_heads, {*self.attention_levels, levels - 1})):
+      bad = sorted({widths[level] for level in attended if widths[level] % parts})
+      if bad:
+        raise ConfigFieldError(name, parts, f"must divide the channels of every level it "
+                               f"splits (base_channels x channel_mult: {bad})")
 
   @property
   def null_token(self) -> int:

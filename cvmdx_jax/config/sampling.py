@@ -6,7 +6,8 @@ from typing import ClassVar
 
 from cvmdx_jax import constants
 from cvmdx_jax.config.denoiser import DenoiserConfig
-from cvmdx_jax.config.fields import FRACTION, NON_NEGATIVE, POSITIVE, ConfigFieldError, check_ranges
+from cvmdx_jax.config.fields import (FRACTION, NON_NEGATIVE, POSITIVE, ConfigFieldError,
+                                     check_integers, check_ranges)
 from cvmdx_jax.errors import UserError
 
 FORMS = ("paper", "official")
@@ -112,6 +113,11 @@ SAMPLERS = ("ddim", "ddpm", "dpmpp2m", "distilled")
 MODES = ("paper", "official")
 
 
+# Samples per scenario, far above the paper's N = 9 and the hypothesis sweep's 64: the
+# predictor holds chunk_size x N samples and the denoiser's activations at once.
+MAX_SAMPLES = 1000
+
+
 @dataclasses.dataclass(frozen=True)
 class SamplingConfig:
   """Static sampling settings (paper defaults); what the denoiser itself is (control scale,
@@ -151,6 +157,7 @@ class SamplingConfig:
 
   def __post_init__(self):
     object.__setattr__(self, "intent_prior", tuple(float(w) for w in self.intent_prior))
+    check_integers(self, ("num_samples", "steps"))
     check_ranges(
         self,
         {
@@ -161,6 +168,13 @@ class SamplingConfig:
             "intent_prior": POSITIVE,
         },
     )
+    if self.num_samples > MAX_SAMPLES:
+      raise ConfigFieldError("num_samples", self.num_samples, f"must be <= {MAX_SAMPLES} "
+                             "(the samples of one chunk of scenarios are held at once)")
+    if self.hypotheses.c_max > self.num_samples:
+      raise ConfigFieldError("hypotheses.c_max", self.hypotheses.c_max,
+                             f"must be <= num_samples={self.num_samples} (components are "
+                             "fitted to the samples)")
     if len(self.intent_prior) != constants.NUM_CLASSES:
       raise ConfigFieldError(
           "intent_prior",
