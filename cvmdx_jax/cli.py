@@ -259,8 +259,10 @@ def presets(name: str, get_config: Callable) -> None:
   flags.register_validator(name, check)
 
 
-def int_list(name: str, low: int) -> None:
-  """Validator: list flag `name` holds integers >= `low`."""
+def int_list(name: str, low: int, high: int | None = None) -> None:
+  """Validator: list flag `name` holds integers >= `low` (and <= `high`, where given)."""
+  bound = f"in {low}..{high}" if high is not None else f">= {low}"
+  top = float("inf") if high is None else high
   flags.register_validator(
-      name, lambda v: all(re.fullmatch(r"-?\d+", s) and int(s) >= low for s in v),
-      f"expected integers >= {low}, comma-separated")
+      name, lambda v: all(re.fullmatch(r"-?\d+", s) and low <= int(s) <= top for s in v),
+      f"expected integers {bound}, comma-separated")

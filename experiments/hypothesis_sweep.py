@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import cli
-from cvmdx_jax.config.sampling import HypothesisConfig
+from cvmdx_jax.config.sampling import MAX_SAMPLES, HypothesisConfig
 from cvmdx_jax.data import dataset, scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import scoring, sweeps
@@ -47,6 +47,7 @@ _NUM = flags.DEFINE_integer("num_scenarios", 0, "Class-balanced subset size (0 =
                             lower_bound=0)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and subset seed.")
 _SAMPLES = flags.DEFINE_list("num_samples", ["9", "18", "36", "64"], "Sample counts N.")
+cli.int_list("num_samples", 1, MAX_SAMPLES)  # a count beyond would not fit in memory
 _METHODS = flags.DEFINE_list("methods", ["bic", "kmeans:0", "kmeans:0.5", "kmeans:1"],
                              "'bic' or 'kmeans:<endpoint_weight>'.")
 _TIMING = flags.DEFINE_integer("timing_scenarios", 64, "Scenarios of the timing calls.",

@@ -101,6 +101,7 @@ CASES = [
     ("hypothesis_sweep", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("hypothesis_sweep", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
     ("hypothesis_sweep", f"{EVAL} --out_dir={{NEW}} --tolerance=-0.1", "--tolerance=-0.1"),
+    ("hypothesis_sweep", "--out_dir={NEW} --num_samples=9,1000000", "--num_samples="),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
      "--tokenizer_dir="),

@@ -10,7 +10,9 @@ XX_tracks.csv, XX_tracksMeta.csv and XX_recordingMeta.csv for each, plus `plans.
 
 import concurrent.futures
 import multiprocessing
+import signal
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -52,6 +54,12 @@ def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
   return frame[frame["time"] >= cfg.warmup_s].reset_index(drop=True)
 
 
+def _exit_on_sigterm() -> None:
+  """Initializer of a worker process: SIGTERM raises SystemExit, so that the
+  `subprocess.run` it is in kills its SUMO child on the way out."""
+  signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+
+
 def _simulate_and_export(cfg, plan, work_dir: Path, out_dir: Path) -> int:
   return sumo_export.export_recording(simulate(cfg, plan, work_dir), cfg, plan, out_dir)
 
@@ -72,9 +80,17 @@ def make_recordings(cfg, out_dir) -> dict:
     # Processes, not threads: the pandas export holds the GIL. Spawned: the parent may
     # already run JAX's threads, which a fork would copy half-way.
     with concurrent.futures.ProcessPoolExecutor(
-        max(1, cfg.workers), mp_context=multiprocessing.get_context("spawn")) as pool:
+        max(1, cfg.workers), mp_context=multiprocessing.get_context("spawn"),
+        initializer=_exit_on_sigterm) as pool:
       futures = [pool.submit(_simulate_and_export, cfg, plan, Path(tmp), out_dir)
                  for plan in plans.values()]
-      rows = [f.result() for f in futures]
+      try:
+        rows = [f.result() for f in futures]
+      except BaseException:  # a failed recording, Ctrl-C, SIGTERM (cli.run): stop the rest
+        for future in futures:
+          future.cancel()
+        for worker in multiprocessing.active_children():
+          worker.terminate()  # its SIGTERM handler kills its SUMO child
+        raise
   sumo_plan.write_plans(plans, out_dir / PLANS_FILE)
   return dict(zip(plans, rows))
