@@ -28,7 +28,7 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli
+from cvmdx_jax import cli, memory
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
                                    TokenizerRunConfig)
@@ -77,6 +77,11 @@ flags.register_validator(
 
 
 def _stage(name: str, start: float) -> None:
+  """Prints the memory so far (`memory.rss_line`: the peak is the process's, through the stage
+  before), hands what the process only kept for reuse back (`memory.release`), then names
+  the next stage."""
+  print(f"    memory: {memory.rss_line()}; released ({memory.release()}): "
+        f"{memory.rss_line()}", flush=True)
   print(f"\n=== {name}  (t = {time.perf_counter() - start:.0f} s)", flush=True)
 
 
@@ -147,8 +152,8 @@ def main(argv):
     animation.write_clip(Predictor.load(tok_dir, teacher), data_dir / "recordings",
                          held_out[0], clip)
     files.append(str(clip))
-  print(f"done in {time.perf_counter() - start:.0f} s; reports: {', '.join(files)}, "
-        f"{root}/*.png", flush=True)
+  print(f"done in {time.perf_counter() - start:.0f} s, {memory.rss_line()}; reports: "
+        f"{', '.join(files)}, {root}/*.png", flush=True)
 
 
 if __name__ == "__main__":
