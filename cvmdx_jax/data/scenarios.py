@@ -29,6 +29,15 @@ FIELDS = {
 }
 
 
+def _leading(value) -> int | None:
+  """The leading dimension of an array-like `value`; None for a scalar or a ragged list."""
+  try:
+    shape = np.shape(value)
+  except ValueError:
+    return None
+  return shape[0] if shape else None
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Scenarios:
@@ -63,7 +72,10 @@ class Scenarios:
   frame: np.ndarray
 
   def __len__(self) -> int:
-    return int(self.label.shape[0])
+    """M: the leading dimension most fields share (ties: the first in `FIELDS` order),
+    so that one field of another length is the one `validate` blames."""
+    counts = [n for n in map(_leading, self.as_dict().values()) if n is not None]
+    return int(max(counts, key=counts.count)) if counts else 0
 
   def take(self, index) -> "Scenarios":
     """The scenarios at `index` (an int array, slice or boolean mask)."""
@@ -94,7 +106,13 @@ class Scenarios:
     for name, (shape, dtype) in FIELDS.items():
       if name not in fields:
         continue
-      value = np.asarray(getattr(self, name))
+      try:
+        value = np.asarray(getattr(self, name))
+      except (ValueError, TypeError) as e:  # ragged lists, ...
+        raise UserError(f"{source}: field '{name}' is not an array ({e})") from None
+      if value.dtype.kind not in "biuf":  # text, objects, complex: no real numbers
+        raise UserError(f"{source}: field '{name}' has dtype {value.dtype}, expected "
+                        "real numbers")
       if value.shape != (m, *shape):
         raise UserError(f"{source}: field '{name}' has shape {value.shape}, "
                          f"expected {(m, *shape)}")
@@ -104,10 +122,12 @@ class Scenarios:
       if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
         raise UserError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
-    if "v0" in fields and np.any(self.v0 < 0):
-      bad = int(np.argmax(self.v0 < 0))
-      raise UserError(f"{source}: field 'v0' is negative ({self.v0[bad]} m/s, scenario {bad})")
-    if "label" in fields and np.any((self.label < 0) | (self.label >= constants.NUM_CLASSES)):
+    v0 = np.asarray(self.v0) if "v0" in fields else None  # a list given as a field
+    if v0 is not None and np.any(v0 < 0):
+      bad = int(np.argmax(v0 < 0))
+      raise UserError(f"{source}: field 'v0' is negative ({v0[bad]} m/s, scenario {bad})")
+    label = np.asarray(self.label) if "label" in fields else None
+    if label is not None and np.any((label < 0) | (label >= constants.NUM_CLASSES)):
       raise UserError(f"{source}: field 'label' outside 0..{constants.NUM_CLASSES - 1}")
     if not allow_empty and m == 0:
       raise UserError(f"{source}: no scenarios")

@@ -26,6 +26,7 @@ float rounding (chunks of other shapes compile to other kernels; ~1e-5 m).
 import dataclasses
 import functools
 import math
+import numbers
 import warnings
 
 import jax
@@ -185,6 +186,11 @@ class Predictor:
   train_tokens: tokens_lib.Tokens | None = None
 
   def __post_init__(self):
+    if isinstance(self.chunk_size, bool) or not isinstance(self.chunk_size, numbers.Integral) \
+        or self.chunk_size < 1:
+      raise UserError(f"chunk_size={self.chunk_size!r}: expected a positive whole number of "
+                      "scenarios per call")
+    object.__setattr__(self, "chunk_size", int(self.chunk_size))
     check_sampling(self.sampling, self.denoiser.config.diffusion)
     mesh = sharding.data_mesh()
     denoiser = dataclasses.replace(self.denoiser, params=unet1d.prepare_params(
