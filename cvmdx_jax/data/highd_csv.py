@@ -26,7 +26,7 @@ from cvmdx_jax.data.highd_format import (
     ABSURD, COLUMNS, MAX_FILE_BYTES, MAX_LINE_BYTES, MAX_ROWS, RANGES, READ_COLUMNS,
     SIZE_COLUMNS, TEXT_COLUMNS)
 
-BLOCK_BYTES = 1 << 23
+BLOCK_BYTES = 1 << 20
 CHUNK_ROWS = 1 << 17
 _QUOTED = 40  # characters of an over-long line quoted in its error
 
@@ -46,7 +46,7 @@ def _check_block(path: Path, block: np.ndarray, state: tuple, header: int | None
   state after it. `header` is the header's field count (None while line 1 is read)."""
   line, partial, fields = state
   ends = np.flatnonzero(block == 10)
-  commas = np.cumsum(block == 44)
+  commas = np.cumsum(block == 44, dtype=np.int32)
   if not len(ends):
     if partial + len(block) > MAX_LINE_BYTES:
       raise _line_error(path, line, block.tobytes())
