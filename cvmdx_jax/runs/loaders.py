@@ -53,6 +53,11 @@ def read_run_config(workdir: Path, cls, what: str):
   except ValueError as e:
     raise CheckpointMismatchError(f"{path}: {e}; a run of another version of cvmdx_jax: "
                                   "retrain it") from e
+  except (KeyError, TypeError, AttributeError) as e:  # a section missing or of another kind
+    raise CheckpointMismatchError(
+        f"{path}: not the config of a {what} run (its section {e} is missing or not a "
+        f"section): another kind of run (a baseline run where a {what} run is expected?) "
+        "or another version") from e
 
 
 def read_tokenizer(workdir: str | os.PathLike):
