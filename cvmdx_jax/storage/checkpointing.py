@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
@@ -148,6 +149,28 @@ def _join_orbax_threads(timeout_s: float = 60.0) -> None:
         thread.join(max(0.0, deadline - time.monotonic()))
       except Exception:  # pylint: disable=broad-except
         pass  # orbax's threads re-raise their error on join: the failed save's, passed on
+
+
+@jax.jit
+def _nan_leaves(leaves: list) -> jax.Array:
+  """(L,) bool: whether each leaf holds a NaN (non-float leaves: False)."""
+  return jnp.stack([jnp.isnan(x).any() if jnp.issubdtype(x.dtype, jnp.inexact)
+                    else jnp.zeros((), bool) for x in leaves])
+
+
+def _refuse_nan(state: Any, where: Path) -> None:
+  """CheckpointMismatchError naming the first leaf of `state` that holds a NaN (weights of a
+  diverged run: never loaded, neither to resume nor as a teacher). Infinities pass (a
+  best-so-far score starts at inf)."""
+  flat = jax.tree_util.tree_flatten_with_path(state)[0]
+  if not flat:
+    return
+  paths, leaves = zip(*flat)
+  bad = np.flatnonzero(np.asarray(jax.device_get(_nan_leaves(list(leaves)))))
+  if bad.size:
+    raise CheckpointMismatchError(
+        f"checkpoint {where} holds NaN in {_path_key(paths[bad[0]])!r} (a diverged run): "
+        "delete this step directory to fall back to an older one, or retrain")
 
 
 def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[int], list[Path]]:
@@ -296,6 +319,7 @@ class Checkpoints:
     custom = meta.custom_metadata or {}
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
+    _refuse_nan(state, where)
     return state, custom["cvmdx"]
 
 

@@ -58,3 +58,17 @@ def test_a_save_failing_on_a_full_disk_leaves_no_temporary_directory(tmp_path, m
   assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
   _, meta = checkpointing.load_latest(tmp_path, _abstract(_state()))
   assert meta == {"q": 1}
+
+
+def test_a_checkpoint_holding_nan_is_refused_naming_the_leaf(tmp_path):
+  """A diverged run's weights: never resumed from, never distilled from. An infinity
+  passes (a best-so-far score starts at inf)."""
+  with checkpointing.Checkpoints(tmp_path) as ckpts:
+    ckpts.save(1, {"w": jnp.ones(3), "best": jnp.asarray(jnp.inf)}, {"q": 1})
+    ckpts.save(2, {"w": jnp.asarray([1.0, jnp.nan, 2.0]), "best": jnp.asarray(1.0)}, {"q": 2})
+  abstract = _abstract({"w": jnp.ones(3), "best": jnp.asarray(1.0)})
+  with pytest.raises(checkpointing.CheckpointMismatchError,
+                     match=r"checkpoint .*/2 holds NaN in 'w'"):
+    checkpointing.load_latest(tmp_path, abstract)
+  state, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(1, abstract)
+  assert meta == {"q": 1} and float(state["best"]) == float("inf")
