@@ -112,6 +112,23 @@ def check_inputs(scenarios: Scenarios, seed) -> None:
                   UnusualScenarioWarning, stacklevel=3)
 
 
+PROGRESSIVE_STAGES = ("progressive", "guided_progressive")
+
+
+def check_student_steps(sampling: SamplingConfig, fingerprint) -> None:
+  """A progressive student samples only as it was distilled: the distilled sampler at its
+  `steps` (its fingerprint's `distill`); UserError otherwise. Other denoisers pass."""
+  distill = dict(fingerprint).get("distill") if fingerprint is not None else None
+  if not distill or distill.get("stage") not in PROGRESSIVE_STAGES:
+    return
+  if sampling.sampler != "distilled" or sampling.steps != distill["steps"]:
+    raise UserError(
+        f"this student was distilled ({distill['stage']}) to sample in {distill['steps']} "
+        f"steps with the 'distilled' sampler; sampling.sampler={sampling.sampler!r}, "
+        f"sampling.steps={sampling.steps} would draw from another distribution: drop the "
+        "sampler / steps overrides")
+
+
 @dataclasses.dataclass(frozen=True)
 class PredictorOutput:
   """Predictions for M scenarios (numpy).
@@ -192,6 +209,7 @@ class Predictor:
                       "scenarios per call")
     object.__setattr__(self, "chunk_size", int(self.chunk_size))
     check_sampling(self.sampling, self.denoiser.config.diffusion)
+    check_student_steps(self.sampling, self.denoiser.fingerprint)
     mesh = sharding.data_mesh()
     denoiser = dataclasses.replace(self.denoiser, params=unet1d.prepare_params(
         self.denoiser.graphdef, self.denoiser.params))

@@ -1,6 +1,7 @@
 """The predictor refuses hostile settings and inputs with a `UserError` naming them: a
 chunk size that is not a positive whole number, scenarios whose xi is text or whose v0 is
-complex (they used to skip the finiteness check or be truncated to their real part)."""
+complex (they used to skip the finiteness check or be truncated to their real part), a
+progressive student sampled at other steps than its own."""
 
 import dataclasses
 
@@ -9,7 +10,8 @@ import pytest
 
 from cvmdx_jax.data import dataset
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.config.sampling import SamplingConfig
+from cvmdx_jax.inference.predictor import Predictor, check_student_steps
 
 
 @pytest.fixture(scope="module")
@@ -37,3 +39,18 @@ def test_inputs_that_are_not_real_numbers_are_refused(loaded, field, make):
   bad = dataclasses.replace(scenarios, **{field: make(scenarios)})
   with pytest.raises(UserError, match=f"field '{field}' has dtype"):
     predictor(bad)
+
+
+@pytest.mark.parametrize("stage", ["progressive", "guided_progressive"])
+def test_a_progressive_student_samples_only_at_its_own_steps(stage):
+  fingerprint = {"distill": {"stage": stage, "steps": 2}}
+  check_student_steps(SamplingConfig(sampler="distilled", steps=2), fingerprint)
+  for sampling in (SamplingConfig(sampler="distilled", steps=4),
+                   SamplingConfig(sampler="ddim", steps=2)):
+    with pytest.raises(UserError, match=f"distilled \\({stage}\\) to sample in 2 steps"):
+      check_student_steps(sampling, fingerprint)
+
+
+def test_other_denoisers_sample_at_any_steps():
+  for fingerprint in ({}, {"distill": {"stage": "guidance", "steps": 2}}):
+    check_student_steps(SamplingConfig(sampler="ddim", steps=7), fingerprint)
