@@ -57,6 +57,7 @@ openmpi:
 benchmark: $(STAMP)
 	$(PY) experiments/benchmark_sampling.py
 	$(PY) experiments/benchmark.py
+	$(PY) experiments/benchmark_costs.py --workdir=runs/benchmark_costs
 	@echo "side by side with the official code: ../shared/reference_bench/README.md, then"
 	@echo "  $(PY) experiments/benchmark.py --reference_json=ours.json --official_json=official.json"
 
