@@ -32,13 +32,14 @@ from absl import app, flags
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli, constants, memory
+from cvmdx_jax import cli, constants
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig, TokenizerRunConfig
 from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.models import tokenizer as tokenizer_lib
 from cvmdx_jax.models import uncertainty, unet1d
+from cvmdx_jax.runs import memory
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill

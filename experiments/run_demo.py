@@ -28,7 +28,7 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli, memory
+from cvmdx_jax import cli
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
                                    TokenizerRunConfig)
@@ -36,6 +36,7 @@ from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data import sumo_plan
 from cvmdx_jax.evaluation import animation, report
 from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.runs import memory
 from cvmdx_jax.train import baseline as baseline_train
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill as distill_train

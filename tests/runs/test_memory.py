@@ -1,4 +1,4 @@
-"""cvmdx_jax.memory: readings of this process's resident memory, and `release`."""
+"""cvmdx_jax.runs.memory: readings of this process's resident memory, and `release`."""
 
 import ctypes
 import gc
@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax import memory
+from cvmdx_jax.runs import memory
 
 
 def test_peak_grows_with_touched_pages_and_stays():
