@@ -7,11 +7,11 @@ scenarios M, training time per epoch against the train scenarios, with log-log s
 The models are the demo's (configs/tokenizer.py:demo, the U-Net of configs/diffusion.py:demo
 sampled by the default sampler: the distilled student, 2 steps, k-means hypotheses) with
 random weights (time and memory do not depend on them), behind the `Predictor` (chunks of
---chunk scenarios, one jitted call each). Each point is the median of --repeats calls
+--chunk scenarios, one jitted call each). Each point is the median of --timed_calls calls
 after a warm-up call that compiles its shape; its memory is the most resident memory
 above the start of one warm call (`memory.call_peak`, after the host allocator returned
 its freed pages; the script keeps the system allocator, so freed buffers leave). The epoch
-is the demo's: shuffled batches of --train_batch gathered on the host, one jitted AdamW
+is the demo's: shuffled batches of --epoch_batch gathered on the host, one jitted AdamW
 step each (the last batch padded). Writes <workdir>/costs.json and three log-log PNGs
 (predict_vs_samples.png, predict_vs_scenarios.png, train_epoch_vs_scenarios.png) and
 prints each curve's fitted slope (1 = linear), over all points and over the upper half.
@@ -60,9 +60,9 @@ _CHUNK = flags.DEFINE_integer("chunk", 64, "Predictor chunk: scenarios per jitte
                               lower_bound=1)
 _TRAIN_SIZES = flags.DEFINE_list("train_sizes", ["256", "512", "1024"],
                                  "Train scenarios of the epoch curve.")
-_TRAIN_BATCH = flags.DEFINE_integer("train_batch", 128, "Batch of the epoch (the demo's).",
+_TRAIN_BATCH = flags.DEFINE_integer("epoch_batch", 128, "Batch of the epoch (the demo's).",
                                     lower_bound=1)
-_REPEATS = flags.DEFINE_integer("repeats", 2, "Timed calls per point.", lower_bound=1)
+_REPEATS = flags.DEFINE_integer("timed_calls", 2, "Timed calls per point.", lower_bound=1)
 cli.output_dirs("workdir")
 for _name in ("samples", "scenarios", "train_sizes"):
   cli.int_list(_name, 1)

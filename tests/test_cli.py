@@ -67,6 +67,9 @@ CASES = [
     ("benchmark", "--performance=fast", "--performance"),
     ("benchmark_sampling", "--nosuch=1", "'nosuch'"),
     ("benchmark_sampling", "--num_samples=2", "--num_samples=2"),
+    ("benchmark_costs", "--workdir={NEW} --nosuch=1", "'nosuch'"),
+    ("benchmark_quality", "--workdir={NEW} --nosuch=1", "'nosuch'"),
+    ("benchmark_stack", "--nosuch=1", "'nosuch'"),
     ("codebook_health", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("codebook_health", "--config=configs/tokenizer.py:nosuch --workdir={NEW}",
      "--config=configs/tokenizer.py:nosuch"),
@@ -98,6 +101,8 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),
     ("evaluate", f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
      "--data_dir={T}/empty --workdir={NEW}", "File name too long"),
+    ("export", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty --out={NEW}",
+     "--tokenizer_dir="),
     ("hypothesis_sweep", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("hypothesis_sweep", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
     ("hypothesis_sweep", f"{EVAL} --out_dir={{NEW}} --tolerance=-0.1", "--tolerance=-0.1"),
@@ -130,6 +135,8 @@ CASES = [
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
     ("sampler_pareto", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("sampler_pareto", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
+    ("run_exported", "--export_dir={T}/nosuch --inputs={T}/file --out={NEW}/o.npz",
+     "nosuch/manifest.json"),
     ("run_demo", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
     ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),

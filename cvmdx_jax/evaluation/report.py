@@ -12,7 +12,7 @@ probabilities and every method's per-scenario scores, for paired comparisons wit
 baselines of one's own). The markdown ends with the paired comparisons of cVMDx against
 every baseline (`comparisons`: differences with 95 % vehicle-bootstrap intervals).
 
-`run` = `loaded.load` (the runs, once) + `evaluate` (-> `files.Report`, plain
+`run` = `report_models.load` (the runs, once) + `evaluate` (-> `files.Report`, plain
 data, nothing written) + `files.write`. Every input is checked before anything is written,
 non-finite predictions stop the run (`scoring.NonFinitePredictionError`) before anything
 is written, and the report is written as a whole or not at all: every file is rendered in
@@ -32,12 +32,12 @@ from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import comparisons, figures, learned_baseline, mdn_rows, scoring
 from cvmdx_jax.evaluation import report_files as files
-from cvmdx_jax.evaluation import report_models as loaded
+from cvmdx_jax.evaluation import report_models
 from cvmdx_jax.evaluation import token_kl as kl
 from cvmdx_jax.storage import locking
 
 
-def _errors(models: loaded.Models, out, scenarios) -> dict:
+def _errors(models: report_models.Models, out, scenarios) -> dict:
   """Per-scenario errors of every method (`scoring`, `learned_baseline`, `mdn_rows`)."""
   gt = jnp.asarray(scenarios.future)
   errors = {**scoring.cvmdx_errors(out, gt, scenarios.label), **scoring.baseline_errors(scenarios)}
@@ -51,7 +51,7 @@ def _errors(models: loaded.Models, out, scenarios) -> dict:
   return errors
 
 
-def _ddpm_results(models: loaded.Models, scenarios, seed: int, size: int, split: str) -> dict:
+def _ddpm_results(models: report_models.Models, scenarios, seed: int, size: int, split: str) -> dict:
   """The single-DDPM-sample row on a class-balanced subset of `size` ({} if none)."""
   if not size:
     return {}
@@ -78,7 +78,7 @@ def _ddpm_results(models: loaded.Models, scenarios, seed: int, size: int, split:
   )
 
 
-def _figures(models: loaded.Models, scenarios, out, diagram, split: str, per_class: int):
+def _figures(models: report_models.Models, scenarios, out, diagram, split: str, per_class: int):
   """({stem: PNG bytes}, stale class-figure stems, KL power-law fit)."""
   token_kl = kl.kl_per_token(out.q, scenarios.future, out.prediction.trajectories, models.usage)
   q_count = len(models.usage)
@@ -100,7 +100,7 @@ def _figures(models: loaded.Models, scenarios, out, diagram, split: str, per_cla
 
 
 def evaluate(
-    models: loaded.Models,
+    models: report_models.Models,
     scenarios,
     *,
     split: str,
@@ -135,7 +135,7 @@ def evaluate(
       "split": split,
       "num_scenarios": len(scenarios),
       "seed": seed,
-      "sampling": loaded.sampling_meta(predictor),
+      "sampling": report_models.sampling_meta(predictor),
       **{k: v for k, v in models.dirs.items() if v is not None and k != "baseline_dir"},
       "data_dir": str(data_dir),
       "dataset_id": None if data_dir is None else dataset_lib.dataset_id(data_dir),
@@ -213,7 +213,7 @@ def run(
     The metrics dict written to metrics.json.
   """
   scenarios = _split(data_dir, split, seed, max_scenarios)
-  models = loaded.load(
+  models = report_models.load(
       tokenizer_dir=tokenizer_dir,
       diffusion_dir=diffusion_dir,
       sampling_overrides=sampling_overrides,
@@ -270,7 +270,7 @@ def run_test_and_ood(
         flush=True,
     )
   loaded = {split: _split(data_dir, split, seed, max_scenarios) for split in splits}
-  models = loaded.load(
+  models = report_models.load(
       tokenizer_dir=tokenizer_dir,
       diffusion_dir=diffusion_dir,
       baseline_dir=baseline_dir,
