@@ -16,7 +16,8 @@ student teaches a progressive student for `steps` steps. Each progressive studen
 regresses `teacher_substeps` (k) DDIM steps of its teacher: `:demo` takes k = 5 (the
 guided teacher's 10-step DDIM for a 2-step student); a progressive teacher samples only
 its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Presets after
-the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores). Any field can be overridden:
+the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores). Any field can be
+overridden:
 `--config.train.num_epochs=20`; the entry point checks every field once
 (`cvmdx_jax.config.runs.DistillRunConfig`).
 """

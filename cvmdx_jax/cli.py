@@ -51,8 +51,13 @@ from cvmdx_jax.train import preemption
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2
-_PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
-                PermissionError)
+_PATH_ERRORS = (
+    FileNotFoundError,
+    NotADirectoryError,
+    IsADirectoryError,
+    FileExistsError,
+    PermissionError,
+)
 _FULL = (errno.ENOSPC, errno.EDQUOT)
 _MACHINE_ERRNOS = (*_FULL, errno.EROFS, errno.ENAMETOOLONG)
 INTERRUPTED_STATUS = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
@@ -231,6 +236,7 @@ def _path_validator(name: str, check: Callable[[str], bool], message: str) -> No
       return value is None or check(value)
     except OSError as e:
       raise flags.ValidationError(f"{message} ({e.strerror})") from e
+
   flags.register_validator(name, verify, message)
 
 
@@ -256,6 +262,7 @@ def presets(name: str, get_config: Callable) -> None:
     except ValueError as e:
       raise flags.ValidationError(str(e)) from e
     return True
+
   flags.register_validator(name, check)
 
 
@@ -264,5 +271,7 @@ def int_list(name: str, low: int, high: int | None = None) -> None:
   bound = f"in {low}..{high}" if high is not None else f">= {low}"
   top = float("inf") if high is None else high
   flags.register_validator(
-      name, lambda v: all(re.fullmatch(r"-?\d+", s) and low <= int(s) <= top for s in v),
-      f"expected integers {bound}, comma-separated")
+      name,
+      lambda v: all(re.fullmatch(r"-?\d+", s) and low <= int(s) <= top for s in v),
+      f"expected integers {bound}, comma-separated",
+  )

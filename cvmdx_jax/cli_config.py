@@ -18,6 +18,7 @@ from pathlib import Path
 
 from absl import flags
 from ml_collections import config_flags
+
 # documented for outside use, but not exported by the package
 from ml_collections.config_flags.config_flags import is_config_flag
 
@@ -45,9 +46,13 @@ def unknown_field(argv: list[str], error: LookupError | AttributeError) -> str |
   for arg in argv[1:]:
     name = arg.split("=", 1)[0]
     head, dot, path = name.lstrip("-").partition(".")
-    if (dot and arg.startswith("--") and head in FLAGS
+    if (
+        dot
+        and arg.startswith("--")
+        and head in FLAGS
         and is_config_flag(FLAGS[head])
-        and (text.strip("'\"") in path.split(".") or text.endswith(path))):
+        and (text.strip("'\"") in path.split(".") or text.endswith(path))
+    ):
       return name
   return None
 
@@ -120,8 +125,7 @@ def check_config(name: str) -> str | None:
   except (OSError, AttributeError, TypeError) as e:  # no get_config, not a config, ...
     return _load_problem(name, filename, e)
   defaults = dict(_leaves(flag.parser.parse(filename)))
-  problems = [(path, _value_problem(value, defaults.get(path)))
-              for path, value in config.items()]
+  problems = [(path, _value_problem(value, defaults.get(path))) for path, value in config.items()]
   problems += [(path, _dir_problem(path, value)) for path, value in config.items()]
   for path, problem in problems:
     if problem:

@@ -10,8 +10,15 @@ NUM_CLASSES = 3  # 0 keep lane, 1 lane change right, 2 lane change left
 
 # Slot order of the 9 vehicles (cVMD `.mat` data_keys).
 VEHICLE_SLOTS = (
-    "ego", "following", "preceding", "leftPreceding", "leftAlongside",
-    "leftFollowing", "rightPreceding", "rightAlongside", "rightFollowing",
+    "ego",
+    "following",
+    "preceding",
+    "leftPreceding",
+    "leftAlongside",
+    "leftFollowing",
+    "rightPreceding",
+    "rightAlongside",
+    "rightFollowing",
 )
 CLASS_NAMES = ("kl", "lcr", "lcl")
 

@@ -20,7 +20,8 @@ t0, 25 Hz; ego = vehicle 0). Each feature is (value - centre) / scale, clipped t
 | 11 | gap to the preceding vehicle at t0, min(x, 150 m) (150 m when none) | m | 50 | 50 |
 | 12 | its closing speed v_x,preceding - v_x at t0 (0 when none) | m/s | 0 | 5 |
 | 13 + 4k | 1 where neighbour k of `NEIGHBOURS` is there at t0, else 0 | - | 0 | 1 |
-| 14 + 4k | its longitudinal offset x_k - x at t0, clipped to +-150 m (when absent: +150 ahead, -150 behind, 0 alongside) | m | 0 | 50 |
+| 14 + 4k | its longitudinal offset x_k - x at t0, clipped to +-150 m (absent: +150 | m | 0 | 50 |
+|         | ahead, -150 behind, 0 alongside) | | | |
 | 15 + 4k | its relative speed v_x,k - v_x at t0 (0 when absent) | m/s | 0 | 5 |
 | 16 + 4k | its lateral offset y_k - y at t0 (0 when absent) | m | 0 | 3.75 |
 
@@ -64,12 +65,25 @@ FEATURES = (
     ("leader_closing_speed", 0.0, 5.0),
 )
 # the neighbours of features 13-40 and where an absent one is put (+1 ahead, -1 behind)
-NEIGHBOURS = (("following", -1.0), ("leftPreceding", 1.0), ("leftAlongside", 0.0),
-              ("leftFollowing", -1.0), ("rightPreceding", 1.0), ("rightAlongside", 0.0),
-              ("rightFollowing", -1.0))
-FEATURES += tuple(feature for slot, _ in NEIGHBOURS for feature in (
-    (f"{slot}_present", 0.0, 1.0), (f"{slot}_dx", 0.0, 50.0), (f"{slot}_dv", 0.0, 5.0),
-    (f"{slot}_dy", 0.0, 3.75)))
+NEIGHBOURS = (
+    ("following", -1.0),
+    ("leftPreceding", 1.0),
+    ("leftAlongside", 0.0),
+    ("leftFollowing", -1.0),
+    ("rightPreceding", 1.0),
+    ("rightAlongside", 0.0),
+    ("rightFollowing", -1.0),
+)
+FEATURES += tuple(
+    feature
+    for slot, _ in NEIGHBOURS
+    for feature in (
+        (f"{slot}_present", 0.0, 1.0),
+        (f"{slot}_dx", 0.0, 50.0),
+        (f"{slot}_dv", 0.0, 5.0),
+        (f"{slot}_dy", 0.0, 3.75),
+    )
+)
 NUM_FEATURES = len(FEATURES)
 CONDITIONINGS = ("token", "ego_film", "ego_residual", "ego_film_residual")
 CLIP = 5.0  # normalised features are clipped to [-CLIP, CLIP]
@@ -89,7 +103,7 @@ def _slope(values, weights):
   centred = t - jnp.sum(weights * t, -1, keepdims=True) / total
   mean = jnp.sum(weights * values, -1, keepdims=True) / total
   num = jnp.sum(weights * centred * (values - mean), -1)
-  den = jnp.sum(weights * centred ** 2, -1)
+  den = jnp.sum(weights * centred**2, -1)
   return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
 
 
@@ -120,35 +134,46 @@ def ego_features(xi, mask):
   lane_present = mask[:, (_PRECEDING, _FOLLOWING), -1]
   lane_y = jnp.sum(jnp.where(lane_present, xi[:, (_PRECEDING, _FOLLOWING), -1, 1], 0.0), -1)
   has_lane = jnp.any(lane_present, axis=-1)
-  lane_offset = jnp.where(has_lane, ego[:, -1, 1] - lane_y / jnp.maximum(
-      jnp.sum(lane_present, -1), 1), 0.0)
+  lane_offset = jnp.where(
+      has_lane, ego[:, -1, 1] - lane_y / jnp.maximum(jnp.sum(lane_present, -1), 1), 0.0
+  )
   leader = mask[:, _PRECEDING, -1]
   lead = xi[:, _PRECEDING, -1]
   present = mask[:, _NEIGHBOUR_SLOTS, -1]  # (M, 7)
   other = xi[:, _NEIGHBOUR_SLOTS, -1]  # (M, 7, 4)
-  neighbours = jnp.stack([
-      present.astype(jnp.float32),
-      jnp.where(present, jnp.clip(other[..., 0] - ego[:, -1:, 0], -MAX_GAP_M, MAX_GAP_M),
-                jnp.asarray(_ABSENT_DX, jnp.float32)),
-      jnp.where(present, other[..., 2] - ego[:, -1:, 2], 0.0),
-      jnp.where(present, other[..., 1] - ego[:, -1:, 1], 0.0),
-  ], axis=-1).reshape(xi.shape[0], -1)
-  raw = jnp.stack([
-      speed[:, -1],
-      _slope(speed[:, recent], weights),
-      jnp.where(window_s > 0, (speed[:, -1] - at(speed, first)) / jnp.maximum(window_s, 1e-3),
-                0.0),
-      _slope(heading[:, recent], weights),
-      heading[:, -1],
-      ego[:, -1, 3],
-      ego[:, -1, 1] - at(ego[..., 1], start_1s),
-      ego[:, -1, 1] - at(ego[..., 1], first),
-      lane_offset,
-      has_lane.astype(jnp.float32),
-      leader.astype(jnp.float32),
-      jnp.where(leader, jnp.clip(lead[:, 0] - ego[:, -1, 0], 0.0, MAX_GAP_M), MAX_GAP_M),
-      jnp.where(leader, lead[:, 2] - ego[:, -1, 2], 0.0),
-  ], axis=-1)
+  neighbours = jnp.stack(
+      [
+          present.astype(jnp.float32),
+          jnp.where(
+              present,
+              jnp.clip(other[..., 0] - ego[:, -1:, 0], -MAX_GAP_M, MAX_GAP_M),
+              jnp.asarray(_ABSENT_DX, jnp.float32),
+          ),
+          jnp.where(present, other[..., 2] - ego[:, -1:, 2], 0.0),
+          jnp.where(present, other[..., 1] - ego[:, -1:, 1], 0.0),
+      ],
+      axis=-1,
+  ).reshape(xi.shape[0], -1)
+  raw = jnp.stack(
+      [
+          speed[:, -1],
+          _slope(speed[:, recent], weights),
+          jnp.where(
+              window_s > 0, (speed[:, -1] - at(speed, first)) / jnp.maximum(window_s, 1e-3), 0.0
+          ),
+          _slope(heading[:, recent], weights),
+          heading[:, -1],
+          ego[:, -1, 3],
+          ego[:, -1, 1] - at(ego[..., 1], start_1s),
+          ego[:, -1, 1] - at(ego[..., 1], first),
+          lane_offset,
+          has_lane.astype(jnp.float32),
+          leader.astype(jnp.float32),
+          jnp.where(leader, jnp.clip(lead[:, 0] - ego[:, -1, 0], 0.0, MAX_GAP_M), MAX_GAP_M),
+          jnp.where(leader, lead[:, 2] - ego[:, -1, 2], 0.0),
+      ],
+      axis=-1,
+  )
   raw = jnp.concatenate([raw, neighbours], axis=-1)
   centre = jnp.asarray([c for _, c, _ in FEATURES], jnp.float32)
   scale = jnp.asarray([s for _, _, s in FEATURES], jnp.float32)
@@ -158,8 +183,9 @@ def ego_features(xi, mask):
 def check_conditioning(conditioning: str) -> str:
   """Returns `conditioning`; ValueError naming diffusion.conditioning if unknown."""
   if conditioning not in CONDITIONINGS:
-    raise UserError(f"diffusion.conditioning must be one of {CONDITIONINGS}, "
-                     f"got {conditioning!r}")
+    raise UserError(
+        f"diffusion.conditioning must be one of {CONDITIONINGS}, " f"got {conditioning!r}"
+    )
   return conditioning
 
 
@@ -186,8 +212,10 @@ def residual_controls(ego, decay_s):
     step k (from t0 + k dt to t0 + (k + 1) dt) decayed by exp(-k dt / tau).
   """
   ego = jnp.asarray(ego, jnp.float32)
-  current = jnp.stack([ego[..., _ACCEL] * FEATURES[_ACCEL][2],
-                       ego[..., _YAW_RATE] * FEATURES[_YAW_RATE][2]], axis=-1)
+  current = jnp.stack(
+      [ego[..., _ACCEL] * FEATURES[_ACCEL][2], ego[..., _YAW_RATE] * FEATURES[_YAW_RATE][2]],
+      axis=-1,
+  )
   t = constants.DT * jnp.arange(constants.T_PRED, dtype=jnp.float32)
   decay = jnp.exp(-t[:, None] / jnp.asarray(decay_s, jnp.float32))
   return current[..., None, :] * decay

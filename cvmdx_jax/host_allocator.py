@@ -38,12 +38,17 @@ OPT_OUT = "CVMDX_ALLOCATOR"  # the option; "system": leave the allocator alone
 CHOICES = ("auto", "jemalloc", "glibc", "system")
 APPLIED = "CVMDX_ALLOCATOR_APPLIED"  # set in the re-executed process
 JEMALLOC_ENV = "CVMDX_JEMALLOC"  # path of libjemalloc.so.2, overrides the search
-JEMALLOC_PATHS = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
-                  "/usr/lib/aarch64-linux-gnu/libjemalloc.so.2", "/usr/lib64/libjemalloc.so.2",
-                  "/usr/lib/libjemalloc.so.2", "/usr/local/lib/libjemalloc.so.2")
+JEMALLOC_PATHS = (
+    "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2",
+    "/usr/lib/aarch64-linux-gnu/libjemalloc.so.2",
+    "/usr/lib64/libjemalloc.so.2",
+    "/usr/lib/libjemalloc.so.2",
+    "/usr/local/lib/libjemalloc.so.2",
+)
 JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1"
-GLIBC_TUNABLES = ("glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=68719476736:"
-                  "glibc.malloc.hugetlb=1")
+GLIBC_TUNABLES = (
+    "glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=68719476736:" "glibc.malloc.hugetlb=1"
+)
 HELP_FLAGS = ("?", "help", "helpshort", "helpfull", "helpxml")  # absl's, after - or --
 
 
@@ -59,8 +64,9 @@ def accelerator_requested(environ: Mapping[str, str]) -> bool:
   return bool(platforms) and platforms[0] != "cpu"
 
 
-def allocator_environment(environ: Mapping[str, str], platform: str = sys.platform,
-                          exists=os.path.isfile) -> dict[str, str] | None:
+def allocator_environment(
+    environ: Mapping[str, str], platform: str = sys.platform, exists=os.path.isfile
+) -> dict[str, str] | None:
   """The environment to re-execute with, or None to keep this process as it is.
 
   Args:
@@ -80,8 +86,12 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
   choice = environ.get(OPT_OUT, "") or "auto"
   if choice not in CHOICES:
     raise UserError(f"{OPT_OUT}={choice!r}: expected one of {', '.join(CHOICES)}")
-  if (choice == "system" or environ.get(APPLIED) or not platform.startswith("linux")
-      or (choice == "auto" and accelerator_requested(environ))):
+  if (
+      choice == "system"
+      or environ.get(APPLIED)
+      or not platform.startswith("linux")
+      or (choice == "auto" and accelerator_requested(environ))
+  ):
     return None
   env = dict(environ, **{APPLIED: "1"})
   jemalloc = None if choice == "glibc" else _find_jemalloc(environ, exists)
@@ -89,8 +99,10 @@ def allocator_environment(environ: Mapping[str, str], platform: str = sys.platfo
     env["LD_PRELOAD"] = _joined(environ, "LD_PRELOAD", jemalloc, ":")
     env["MALLOC_CONF"] = _joined(environ, "MALLOC_CONF", JEMALLOC_CONF, ",")
   elif choice == "jemalloc":
-    raise UserError(f"{OPT_OUT}=jemalloc: libjemalloc.so.2 is not in {', '.join(JEMALLOC_PATHS)}"
-                     f" (install libjemalloc2, or name it in {JEMALLOC_ENV})")
+    raise UserError(
+        f"{OPT_OUT}=jemalloc: libjemalloc.so.2 is not in {', '.join(JEMALLOC_PATHS)}"
+        f" (install libjemalloc2, or name it in {JEMALLOC_ENV})"
+    )
   else:
     env["GLIBC_TUNABLES"] = _joined(environ, "GLIBC_TUNABLES", GLIBC_TUNABLES, ":")
   return env
@@ -115,8 +127,9 @@ def reexec_with_allocator() -> None:
   """Re-executes this process (same interpreter and arguments) with
   `allocator_environment(os.environ)`, when that is not None and no help flag was given
   (absl prints the usage and exits: nothing to speed up); else returns."""
-  if any(arg.startswith("-") and arg.lstrip("-").split("=", 1)[0] in HELP_FLAGS
-         for arg in sys.argv[1:]):
+  if any(
+      arg.startswith("-") and arg.lstrip("-").split("=", 1)[0] in HELP_FLAGS for arg in sys.argv[1:]
+  ):
     return
   env = allocator_environment(os.environ)
   if env is not None:

@@ -78,19 +78,27 @@ def detect_cluster(launcher: str, timeout_s: int = 300) -> tuple[str, int, int, 
     UserError: the launcher's environment is incomplete (e.g. no `kubernetes` package).
   """
   from jax._src import clusters  # pylint: disable=import-outside-toplevel
+
   known = clusters.ClusterEnv._cluster_types  # pylint: disable=protected-access
   kinds = {kind.__name__: kind for kind in known}
   kind, env = kinds[_JAX_CLUSTERS[launcher]], os.environ
   if not kind.is_env_present():
     hint = " (pip install kubernetes)" if launcher == "k8s" else ""
-    raise UserError(f"the {launcher} launcher's environment is incomplete{hint}; or set "
-                    f"{ENV_COORDINATOR}, {ENV_NUM_PROCESSES} and {ENV_PROCESS_ID}")
+    raise UserError(
+        f"the {launcher} launcher's environment is incomplete{hint}; or set "
+        f"{ENV_COORDINATOR}, {ENV_NUM_PROCESSES} and {ENV_PROCESS_ID}"
+    )
   coordinator = env.get(ENV_COORDINATOR) or kind.get_coordinator_address(
-      timeout_s, env.get("JAX_COORDINATOR_PORT"))
+      timeout_s, env.get("JAX_COORDINATOR_PORT")
+  )
   index = _env_int(env, ENV_PROCESS_ID)
   local = kind.get_local_process_id()
-  return (coordinator, kind.get_process_count(), kind.get_process_id() if index is None
-          else index, None if local is None else [local])
+  return (
+      coordinator,
+      kind.get_process_count(),
+      kind.get_process_id() if index is None else index,
+      None if local is None else [local],
+  )
 
 
 def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, int]:
@@ -124,19 +132,25 @@ def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, i
   if launcher is not None:
     coordinator, count, index, local_ids = detect_cluster(launcher)
   elif not env.get(ENV_COORDINATOR):
-    raise UserError(f"{ENV_NUM_PROCESSES}={count} needs {ENV_COORDINATOR}=host:port of "
-                    "process 0")
+    raise UserError(
+        f"{ENV_NUM_PROCESSES}={count} needs {ENV_COORDINATOR}=host:port of " "process 0"
+    )
   else:
     coordinator = env[ENV_COORDINATOR]
   if index is None or not 0 <= index < count:
-    raise UserError(f"{ENV_PROCESS_ID}={index} must be in 0..{count - 1} "
-                    f"({ENV_NUM_PROCESSES}={count})")
+    raise UserError(
+        f"{ENV_PROCESS_ID}={index} must be in 0..{count - 1} " f"({ENV_NUM_PROCESSES}={count})"
+    )
   jax.config.update("jax_cpu_collectives_implementation", "gloo")
-  jax.distributed.initialize(coordinator_address=coordinator, num_processes=count,
-                             process_id=index, local_device_ids=local_ids,
-                             cluster_detection_method="deactivate",
-                             heartbeat_timeout_seconds=HEARTBEAT_S,
-                             shutdown_timeout_seconds=SHUTDOWN_S)
+  jax.distributed.initialize(
+      coordinator_address=coordinator,
+      num_processes=count,
+      process_id=index,
+      local_device_ids=local_ids,
+      cluster_detection_method="deactivate",
+      heartbeat_timeout_seconds=HEARTBEAT_S,
+      shutdown_timeout_seconds=SHUTDOWN_S,
+  )
   return jax.process_index(), jax.process_count()
 
 
@@ -152,18 +166,20 @@ def check_same_run(fingerprint: Any, what: str = "run") -> None:
   if jax.process_count() == 1:
     return
   from jax.experimental import multihost_utils
+
   mine = json.dumps(identity.to_json(fingerprint), sort_keys=True).encode()
   sizes = multihost_utils.process_allgather(np.int32(len(mine)))
   padded = np.zeros(int(np.max(sizes)), np.uint8)
-  padded[:len(mine)] = np.frombuffer(mine, np.uint8)
+  padded[: len(mine)] = np.frombuffer(mine, np.uint8)
   texts = multihost_utils.process_allgather(padded)
   runs = [json.loads(bytes(t[:n])) for t, n in zip(texts, sizes)]
   for index, run in enumerate(runs[1:], start=1):
     diffs = identity.differing_keys(run, runs[0], names=(f"process {index}", "process 0"))
     if diffs:
-      raise ProcessMismatchError(f"process {index} of {len(runs)} was started with another "
-                                 f"{what} than process 0; differing keys: " + "; ".join(diffs)
-                                 + "; nothing was written")
+      raise ProcessMismatchError(
+          f"process {index} of {len(runs)} was started with another "
+          f"{what} than process 0; differing keys: " + "; ".join(diffs) + "; nothing was written"
+      )
 
 
 def is_primary() -> bool:
@@ -195,7 +211,8 @@ def check_divisible(batch_size: int, mesh: Mesh, name: str = "batch_size") -> No
   if batch_size <= 0 or batch_size % n:
     raise UserError(
         f"{name}={batch_size} must be a positive multiple of the number of devices ({n}); "
-        f"choose {name} divisible by {n} or run on fewer devices")
+        f"choose {name} divisible by {n} or run on fewer devices"
+    )
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
@@ -226,8 +243,12 @@ def shard_batch(batch: Any, mesh: Mesh) -> Any:
   split = batch_sharding(mesh)
   if split.is_fully_addressable:
     return jax.device_put(batch, split)
-  return jax.tree.map(lambda x: jax.make_array_from_callback(
-      np.shape(x), split, lambda index: np.asarray(x[index])), batch)
+  return jax.tree.map(
+      lambda x: jax.make_array_from_callback(
+          np.shape(x), split, lambda index: np.asarray(x[index])
+      ),
+      batch,
+  )
 
 
 def local_copy(tree: Any) -> Any:
@@ -254,8 +275,9 @@ def pad_batch(batch: Any, multiple: int) -> tuple[Any, np.ndarray]:
     raise ValueError(f"pad_batch: multiple={multiple} must be positive")
   sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(batch)}
   if len(sizes) != 1 or None in sizes or 0 in sizes:
-    raise ValueError(f"pad_batch: leaves need one common, non-zero leading dimension, "
-                     f"got {sizes}")
+    raise ValueError(
+        f"pad_batch: leaves need one common, non-zero leading dimension, " f"got {sizes}"
+    )
   n = sizes.pop()
   pad = -n % multiple
   weight = np.concatenate([np.ones(n, np.float32), np.zeros(pad, np.float32)])

@@ -8,10 +8,9 @@ controls (`inference.sampling`), so they are a property of the trained denoiser 
 stored with it (`config.json`, section `diffusion`).
 """
 
-
 import jax.numpy as jnp
-from cvmdx_jax.config.denoiser import PAPER_SCALE
 
+from cvmdx_jax.config.denoiser import PAPER_SCALE
 
 
 def normalize_controls(controls, scale=PAPER_SCALE):

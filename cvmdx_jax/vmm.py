@@ -65,8 +65,10 @@ def _fit_matrices(smoothing: float):
   a = np.where(j < k, dt * dt * (k - j - 0.5), 0.0)
   d = np.diff(np.eye(t), axis=0)
   m = a.T @ a + smoothing * d.T @ d
-  return (np.linalg.solve(m, a.T).astype(np.float32),
-          np.linalg.solve(m, smoothing * d.T @ d).astype(np.float32))
+  return (
+      np.linalg.solve(m, a.T).astype(np.float32),
+      np.linalg.solve(m, smoothing * d.T @ d).astype(np.float32),
+  )
 
 
 @functools.partial(jax.jit, static_argnames=("smoothing", "iterations"))

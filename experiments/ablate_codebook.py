@@ -28,16 +28,18 @@ _SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"], "
 _QUANTIZERS = flags.DEFINE_list("quantizers", ["cvq"], "cvq and/or vq.")
 _TOK = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.py preset.")
 _DIFF = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
-_MAX = flags.DEFINE_integer("max_scenarios", 0, "Class-balanced test subset (0 = all).",
-                            lower_bound=0)
+_MAX = flags.DEFINE_integer(
+    "max_scenarios", 0, "Class-balanced test subset (0 = all).", lower_bound=0
+)
 flags.mark_flags_as_required(["data_dir", "workdir"])
 cli.input_dirs("data_dir")
 cli.output_dirs("workdir")
 cli.int_list("codebook_sizes", 1)
 cli.presets("tokenizer_preset", tokenizer_config.get_config)
 cli.presets("diffusion_preset", diffusion_config.get_config)
-flags.register_validator("quantizers", lambda v: set(v) <= {"cvq", "vq"},
-                         "expected cvq and/or vq, comma-separated")
+flags.register_validator(
+    "quantizers", lambda v: set(v) <= {"cvq", "vq"}, "expected cvq and/or vq, comma-separated"
+)
 READOUTS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k")
 
 
@@ -50,17 +52,24 @@ def run_one(root: Path, data_dir: str, quantizer: str, q: int) -> dict:
   diff = diffusion_config.get_config(_DIFF.value)
   diff.data_dir, diff.tokenizer_dir = data_dir, str(run / "tokenizer")
   diffusion_train.train(DiffusionRunConfig.from_config(diff), run / "diffusion")
-  return report.run(tokenizer_dir=run / "tokenizer", diffusion_dir=run / "diffusion",
-                    data_dir=data_dir, workdir=run / "eval", max_scenarios=_MAX.value,
-                    ddpm_scenarios=0, figures_per_class=0)
+  return report.run(
+      tokenizer_dir=run / "tokenizer",
+      diffusion_dir=run / "diffusion",
+      data_dir=data_dir,
+      workdir=run / "eval",
+      max_scenarios=_MAX.value,
+      ddpm_scenarios=0,
+      figures_per_class=0,
+  )
 
 
 def table(rows: dict) -> str:
   head = "| quantizer | Q | " + " | ".join(f"{r} ADE | {r} FDE" for r in READOUTS) + " |"
   lines = [head, "|---|---|" + "---|---|" * len(READOUTS)]
   for (quantizer, q), results in rows.items():
-    cells = " | ".join(f"{results[r]['all']['ade']:.2f} | {results[r]['all']['fde']:.2f}"
-                       for r in READOUTS)
+    cells = " | ".join(
+        f"{results[r]['all']['ade']:.2f} | {results[r]['all']['fde']:.2f}" for r in READOUTS
+    )
     lines.append(f"| {quantizer} | {q} | {cells} |")
   return "\n".join(lines) + "\n"
 
@@ -69,13 +78,18 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   root = Path(_WORKDIR.value)
-  rows = {(quantizer, int(q)): run_one(root, _DATA.value, quantizer, int(q))
-          for quantizer in _QUANTIZERS.value for q in _SIZES.value}
+  rows = {
+      (quantizer, int(q)): run_one(root, _DATA.value, quantizer, int(q))
+      for quantizer in _QUANTIZERS.value
+      for q in _SIZES.value
+  }
   root.mkdir(parents=True, exist_ok=True)
   text = table(rows)
   atomic.write_text(root / "ablation.md", text)
-  atomic.write_json(root / "ablation.json",
-                    {f"{k}_q{q}": {r: v[r] for r in READOUTS} for (k, q), v in rows.items()})
+  atomic.write_json(
+      root / "ablation.json",
+      {f"{k}_q{q}": {r: v[r] for r in READOUTS} for (k, q), v in rows.items()},
+  )
   print(text)
 
 

@@ -48,20 +48,30 @@ matplotlib.use("Agg")
 from matplotlib import pyplot as plt  # noqa: E402  (after the backend is chosen)
 
 _WORKDIR = flags.DEFINE_string("workdir", "runs/benchmark_costs", "Where the curves go.")
-_SAMPLES = flags.DEFINE_list("samples", ["9", "32", "128"],
-                             "N of the samples curve.")
-_SAMPLES_M = flags.DEFINE_integer("samples_scenarios", 8, "Scenarios per call of the samples "
-                                  "curve.", lower_bound=1)
-_SCENARIOS = flags.DEFINE_list("scenarios", ["1", "10", "100", "1000"],
-                               "M of the scenarios curve (10000 takes minutes on 2 cores).")
-_SCENARIOS_N = flags.DEFINE_integer("scenarios_samples", 9, "N of the scenarios curve (the "
-                                    "paper's; the demo draws 64).", lower_bound=1)
-_CHUNK = flags.DEFINE_integer("chunk", 64, "Predictor chunk: scenarios per jitted call.",
-                              lower_bound=1)
-_TRAIN_SIZES = flags.DEFINE_list("train_sizes", ["256", "512", "1024"],
-                                 "Train scenarios of the epoch curve.")
-_TRAIN_BATCH = flags.DEFINE_integer("epoch_batch", 128, "Batch of the epoch (the demo's).",
-                                    lower_bound=1)
+_SAMPLES = flags.DEFINE_list("samples", ["9", "32", "128"], "N of the samples curve.")
+_SAMPLES_M = flags.DEFINE_integer(
+    "samples_scenarios", 8, "Scenarios per call of the samples " "curve.", lower_bound=1
+)
+_SCENARIOS = flags.DEFINE_list(
+    "scenarios",
+    ["1", "10", "100", "1000"],
+    "M of the scenarios curve (10000 takes minutes on 2 cores).",
+)
+_SCENARIOS_N = flags.DEFINE_integer(
+    "scenarios_samples",
+    9,
+    "N of the scenarios curve (the " "paper's; the demo draws 64).",
+    lower_bound=1,
+)
+_CHUNK = flags.DEFINE_integer(
+    "chunk", 64, "Predictor chunk: scenarios per jitted call.", lower_bound=1
+)
+_TRAIN_SIZES = flags.DEFINE_list(
+    "train_sizes", ["256", "512", "1024"], "Train scenarios of the epoch curve."
+)
+_TRAIN_BATCH = flags.DEFINE_integer(
+    "epoch_batch", 128, "Batch of the epoch (the demo's).", lower_bound=1
+)
 _REPEATS = flags.DEFINE_integer("timed_calls", 2, "Timed calls per point.", lower_bound=1)
 cli.output_dirs("workdir")
 for _name in ("samples", "scenarios", "train_sizes"):
@@ -76,8 +86,13 @@ def demo_predictor(num_samples: int, chunk: int) -> Predictor:
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
   gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
-                              ml_collections.FrozenConfigDict({"dataset_id": "none"}))
+  tokenizer = TokenizerBundle(
+      tok_params,
+      gaussians,
+      tok_graphdef,
+      tok_cfg,
+      ml_collections.FrozenConfigDict({"dataset_id": "none"}),
+  )
   config = student_run_config(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
   denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
@@ -97,9 +112,15 @@ def random_scenarios(m: int, seed: int = 0):
   xi = rng.normal(0.0, 1.0, (m, constants.NUM_VEHICLES, constants.T_OBS, 4)).astype(np.float32)
   xi[..., 2] += 30.0
   zeros = np.zeros((m, constants.T_PRED, 2), np.float32)
-  return from_arrays(xi=xi, mask=np.ones(xi.shape[:3], bool), future=zeros, controls=zeros,
-                     v0=np.full(m, 30.0, np.float32), psi0=np.zeros(m, np.float32),
-                     label=np.arange(m) % 3)
+  return from_arrays(
+      xi=xi,
+      mask=np.ones(xi.shape[:3], bool),
+      future=zeros,
+      controls=zeros,
+      v0=np.full(m, 30.0, np.float32),
+      psi0=np.zeros(m, np.float32),
+      label=np.arange(m) % 3,
+  )
 
 
 def timed_point(fn, warmup_fn, repeats: int) -> dict:
@@ -133,8 +154,9 @@ def scenarios_curve(sizes, n: int, chunk: int, repeats: int) -> list[dict]:
   for m in sizes:
     scenarios = random_scenarios(m)
     first = scenarios.take(np.arange(min(m, chunk)))  # the chunk's shape, compiled
-    point = timed_point(lambda: predictor(scenarios), lambda: predictor(first),
-                        repeats if m <= chunk else 1)
+    point = timed_point(
+        lambda: predictor(scenarios), lambda: predictor(first), repeats if m <= chunk else 1
+    )
     rows.append({"x": m, **point})
     print(f"M = {m:5d}, N = {n}: {rows[-1]}", flush=True)
   return rows
@@ -150,20 +172,24 @@ def epoch_curve(sizes, batch: int, repeats: int) -> list[dict]:
   rows = []
   for size in sizes:
     rng = np.random.default_rng(size)
-    data = {"x0": rng.uniform(-1, 1, (size, constants.T_PRED, 2)).astype(np.float32),
-            "q": (np.arange(size) % model.null_token).astype(np.int32),
-            "weight": np.ones(size, np.float32),
-            "ego": np.zeros((size, model.cond_dim), np.float32)}
+    data = {
+        "x0": rng.uniform(-1, 1, (size, constants.T_PRED, 2)).astype(np.float32),
+        "q": (np.arange(size) % model.null_token).astype(np.int32),
+        "weight": np.ones(size, np.float32),
+        "ego": np.zeros((size, model.cond_dim), np.float32),
+    }
     if model.num_intents:
       data["label"] = (np.arange(size) % model.num_intents).astype(np.int32)
 
     def epoch(data=data, size=size):
       order = rng.permutation(size)
       for start in range(0, size, batch):
-        idx = np.resize(order[start:start + batch], batch)  # the last batch padded
-        holder["state"], metrics = step(holder["state"], {k: v[idx] for k, v in data.items()},
-                                        jax.random.key(start))
+        idx = np.resize(order[start : start + batch], batch)  # the last batch padded
+        holder["state"], metrics = step(
+            holder["state"], {k: v[idx] for k, v in data.items()}, jax.random.key(start)
+        )
       return jax.block_until_ready(metrics["loss"])
+
     rows.append({"x": size, **timed_point(epoch, epoch, repeats)})
     print(f"train scenarios = {size:5d}, batch {batch}: {rows[-1]}", flush=True)
   return rows
@@ -204,13 +230,21 @@ def main(argv):
   ints = lambda flag: [int(v) for v in flag.value]
   chunk, repeats = _CHUNK.value, _REPEATS.value
   curves = {
-      "predict_vs_samples": (samples_curve(ints(_SAMPLES), _SAMPLES_M.value, chunk, repeats),
-                             "samples N per scenario", f"predict {_SAMPLES_M.value} scenarios"),
+      "predict_vs_samples": (
+          samples_curve(ints(_SAMPLES), _SAMPLES_M.value, chunk, repeats),
+          "samples N per scenario",
+          f"predict {_SAMPLES_M.value} scenarios",
+      ),
       "predict_vs_scenarios": (
           scenarios_curve(ints(_SCENARIOS), _SCENARIOS_N.value, chunk, repeats),
-          "scenarios M", f"predict, N = {_SCENARIOS_N.value}, chunks of {chunk}"),
-      "train_epoch_vs_scenarios": (epoch_curve(ints(_TRAIN_SIZES), _TRAIN_BATCH.value, repeats),
-                                   "train scenarios", f"one epoch, batch {_TRAIN_BATCH.value}"),
+          "scenarios M",
+          f"predict, N = {_SCENARIOS_N.value}, chunks of {chunk}",
+      ),
+      "train_epoch_vs_scenarios": (
+          epoch_curve(ints(_TRAIN_SIZES), _TRAIN_BATCH.value, repeats),
+          "train scenarios",
+          f"one epoch, batch {_TRAIN_BATCH.value}",
+      ),
   }
   files, summary = {}, {"backend": jax.default_backend(), "devices": len(jax.devices())}
   for name, (rows, xlabel, title) in curves.items():
@@ -218,8 +252,10 @@ def main(argv):
     summary[name] = {"rows": rows, "slopes": fits}
     files[out / f"{name}.png"] = plot(rows, xlabel, title, name.startswith("predict"))
     for key, (whole, upper) in fits.items():
-      print(f"{name}: log-log slope of {key}: {whole:.2f} (all points), {upper:.2f} "
-            "(upper half)", flush=True)
+      print(
+          f"{name}: log-log slope of {key}: {whole:.2f} (all points), {upper:.2f} " "(upper half)",
+          flush=True,
+      )
   files[out / "costs.json"] = atomic.json_text(summary, indent=1).encode()
   out.mkdir(parents=True, exist_ok=True)
   atomic.write_all(files)

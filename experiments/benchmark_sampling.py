@@ -23,43 +23,50 @@ Run:
 import time
 import warnings
 
-from absl import app
-from absl import flags
 import jax
 import jax.numpy as jnp
 import numpy as np
-from sklearn import decomposition
-from sklearn import exceptions
-from sklearn import mixture
 import threadpoolctl
+from absl import app, flags
+from sklearn import decomposition, exceptions, mixture
 
-from cvmdx_jax import cli
-from cvmdx_jax import diffusion
+from cvmdx_jax import cli, diffusion
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, HypothesisConfig
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import synthetic
+from cvmdx_jax.multimodal import hypotheses, synthetic
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
 
-_SECTIONS = flags.DEFINE_list("sections", ["samplers", "guidance", "hypotheses", "recovery"],
-                              "Sections to run.")
-_NUM_SCENARIOS = flags.DEFINE_integer("num_scenarios", 1000, "Scenarios per benchmark.",
-                                      lower_bound=1)
+_SECTIONS = flags.DEFINE_list(
+    "sections", ["samplers", "guidance", "hypotheses", "recovery"], "Sections to run."
+)
+_NUM_SCENARIOS = flags.DEFINE_integer(
+    "num_scenarios", 1000, "Scenarios per benchmark.", lower_bound=1
+)
 _NUM_SAMPLES = flags.DEFINE_integer(
-    "num_samples", 9, "Sampled trajectories per scenario (2 per mode, up to 3 modes).",
-    lower_bound=6)
-_SEED = flags.DEFINE_integer("seed", 0, "Seed of the synthetic mode sets.", lower_bound=0,
-                             upper_bound=2**32 - 2)
+    "num_samples",
+    9,
+    "Sampled trajectories per scenario (2 per mode, up to 3 modes).",
+    lower_bound=6,
+)
+_SEED = flags.DEFINE_integer(
+    "seed", 0, "Seed of the synthetic mode sets.", lower_bound=0, upper_bound=2**32 - 2
+)
 
 # (scaling, reg_covar, pca_dim) rows of the recovery table; the last row is
 # the official evaluation's variant.
 RECOVERY_GRID = (
-    ("physical", 1e-3, 2), ("physical", 3e-3, 2), ("physical", 1e-2, 2),
-    ("physical", 3e-2, 2), ("minmax", 1e-6, 2), ("minmax", 9e-5, 2), ("minmax", 1e-3, 2),
-    ("minmax", 1e-2, 2), ("physical", 9e-5, 5),
+    ("physical", 1e-3, 2),
+    ("physical", 3e-3, 2),
+    ("physical", 1e-2, 2),
+    ("physical", 3e-2, 2),
+    ("minmax", 1e-6, 2),
+    ("minmax", 9e-5, 2),
+    ("minmax", 1e-3, 2),
+    ("minmax", 1e-2, 2),
+    ("physical", 9e-5, 5),
 )
 
 
@@ -97,8 +104,14 @@ def sklearn_bic(trajectories, config, tol=1e-3):
       flat = (samples / scale).reshape(len(samples), -1)
       points = decomposition.PCA(config.pca_dim, svd_solver="full").fit_transform(flat)
       for c in range(1, config.c_max + 1):
-        gmm = mixture.GaussianMixture(c, covariance_type="full", reg_covar=config.reg_covar,
-                                      tol=tol, max_iter=config.em_iters, random_state=0)
+        gmm = mixture.GaussianMixture(
+            c,
+            covariance_type="full",
+            reg_covar=config.reg_covar,
+            tol=tol,
+            max_iter=config.em_iters,
+            random_state=0,
+        )
         bic[b, c - 1] = gmm.fit(points).bic(points)
   return bic
 
@@ -121,12 +134,18 @@ def benchmark_hypotheses(num_scenarios=1000, num_samples=9, seed=0):
     bic = sklearn_bic(trajectories, config)
   sklearn_s = time.perf_counter() - start
   agreement = float(np.mean(chosen == bic.argmin(axis=1) + 1))
-  result = {"jax_s": jax_s, "sklearn_s": sklearn_s, "speedup": sklearn_s / jax_s,
-            "agreement": agreement}
-  print(f"hypotheses on {num_scenarios} scenarios x {num_samples} samples "
-        f"({jax.devices()[0].platform}): JAX {jax_s * 1e3:.1f} ms, "
-        f"scikit-learn loop {sklearn_s:.2f} s, speed-up {result['speedup']:.0f}x, "
-        f"same C {100 * agreement:.1f} %")
+  result = {
+      "jax_s": jax_s,
+      "sklearn_s": sklearn_s,
+      "speedup": sklearn_s / jax_s,
+      "agreement": agreement,
+  }
+  print(
+      f"hypotheses on {num_scenarios} scenarios x {num_samples} samples "
+      f"({jax.devices()[0].platform}): JAX {jax_s * 1e3:.1f} ms, "
+      f"scikit-learn loop {sklearn_s:.2f} s, speed-up {result['speedup']:.0f}x, "
+      f"same C {100 * agreement:.1f} %"
+  )
   return result
 
 
@@ -145,12 +164,18 @@ def recovery_table(num_sets=1000, seed=1, grid=RECOVERY_GRID):
   for scaling, reg_covar, pca_dim in grid:
     config = HypothesisConfig(scaling=scaling, reg_covar=reg_covar, pca_dim=pca_dim)
     chosen = np.asarray(fit_hypotheses(trajectories, config=config).num_components)
-    row = {"scaling": scaling, "reg_covar": reg_covar, "pca_dim": pca_dim,
-           "recovered": float(np.mean(chosen == num_modes)),
-           "over": float(np.mean(chosen > num_modes)),
-           "under": float(np.mean(chosen < num_modes))}
-    print(f"| {scaling} | {reg_covar:g} | {pca_dim} | {100 * row['recovered']:.1f} % | "
-          f"{100 * row['over']:.1f} % | {100 * row['under']:.1f} % |")
+    row = {
+        "scaling": scaling,
+        "reg_covar": reg_covar,
+        "pca_dim": pca_dim,
+        "recovered": float(np.mean(chosen == num_modes)),
+        "over": float(np.mean(chosen > num_modes)),
+        "under": float(np.mean(chosen < num_modes)),
+    }
+    print(
+        f"| {scaling} | {reg_covar:g} | {pca_dim} | {100 * row['recovered']:.1f} % | "
+        f"{100 * row['over']:.1f} % | {100 * row['under']:.1f} % |"
+    )
     rows.append(row)
   return rows
 
@@ -159,14 +184,19 @@ def _default_unet(seed: int):
   """(model_fn (x_t, t, q) -> v of the default U-Net, its null token, its params)."""
   config = UNetConfig()
   graphdef, params = unet1d.init_unet(config, jax.random.key(seed))
-  return (lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)), config.null_token, \
-      params
+  return (lambda x, t, q: unet1d.apply_unet(graphdef, params, x, t, q)), config.null_token, params
 
 
 def _guided(model, null_token: int, num_samples: int, guidance=GuidanceConfig()):
   """The guided v_fn of `model` for `num_samples` samples of one scenario (token 0, delta 5)."""
-  return diffusion.guided_v_fn(model, jnp.zeros(num_samples, jnp.int32), null_token,
-                               jnp.full(num_samples, 5.0), diffusion.cosine_schedule(), guidance)
+  return diffusion.guided_v_fn(
+      model,
+      jnp.zeros(num_samples, jnp.int32),
+      null_token,
+      jnp.full(num_samples, 5.0),
+      diffusion.cosine_schedule(),
+      guidance,
+  )
 
 
 def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
@@ -175,13 +205,17 @@ def benchmark_samplers(num_samples: int = 9, seed: int = 0) -> dict:
   v_fn = _guided(model, null_token, num_samples)
   schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
   times = {  # DDIM: median of 5 calls
-      "ddim": _median_s(jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule,
-                                                                steps=10)), 5),
-      "ddpm": _median_s(jax.jit(lambda k: diffusion.ddpm_sample(v_fn, k, shape, schedule)), 1)}
+      "ddim": _median_s(
+          jax.jit(lambda k: diffusion.ddim_sample(v_fn, k, shape, schedule, steps=10)), 5
+      ),
+      "ddpm": _median_s(jax.jit(lambda k: diffusion.ddpm_sample(v_fn, k, shape, schedule)), 1),
+  }
   ratio = times["ddpm"] / times["ddim"]
-  print(f"samplers: {unet1d.count_params(params) / 1e6:.1f} M-parameter U-Net, {num_samples} "
-        f"guided samples: DDPM(1000) {times['ddpm']:.2f} s, DDIM(10) {times['ddim']:.3f} s, "
-        f"ratio {ratio:.1f}x (ideal 100x)")
+  print(
+      f"samplers: {unet1d.count_params(params) / 1e6:.1f} M-parameter U-Net, {num_samples} "
+      f"guided samples: DDPM(1000) {times['ddpm']:.2f} s, DDIM(10) {times['ddim']:.3f} s, "
+      f"ratio {ratio:.1f}x (ideal 100x)"
+  )
   return {**times, "ratio": ratio}
 
 
@@ -190,14 +224,19 @@ def benchmark_guidance(num_samples: int = 9, seed: int = 0) -> dict:
   model, null_token, _ = _default_unet(seed)
   schedule, shape = diffusion.cosine_schedule(), (num_samples, 125, 2)
   times = {}
-  for name, guidance in (("pair", GuidanceConfig()),
-                         ("off", GuidanceConfig(w_min=0.0, w_max_base=0.0))):
+  for name, guidance in (
+      ("pair", GuidanceConfig()),
+      ("off", GuidanceConfig(w_min=0.0, w_max_base=0.0)),
+  ):
     v_fn = _guided(model, null_token, num_samples, guidance)
-    times[name] = _median_s(jax.jit(lambda k, v_fn=v_fn: diffusion.ddim_sample(
-        v_fn, k, shape, schedule, steps=10)), 5)
+    times[name] = _median_s(
+        jax.jit(lambda k, v_fn=v_fn: diffusion.ddim_sample(v_fn, k, shape, schedule, steps=10)), 5
+    )
   ratio = times["pair"] / times["off"]
-  print(f"guidance: DDIM(10), {num_samples} samples: guided pair {times['pair']:.3f} s, "
-        f"guidance off {times['off']:.3f} s, ratio {ratio:.2f}x (ideal 2x)")
+  print(
+      f"guidance: DDIM(10), {num_samples} samples: guided pair {times['pair']:.3f} s, "
+      f"guidance off {times['off']:.3f} s, ratio {ratio:.2f}x (ideal 2x)"
+  )
   return {**times, "ratio": ratio}
 
 
@@ -208,7 +247,8 @@ def main(argv):
       "samplers": lambda: benchmark_samplers(_NUM_SAMPLES.value, _SEED.value),
       "guidance": lambda: benchmark_guidance(_NUM_SAMPLES.value, _SEED.value),
       "hypotheses": lambda: benchmark_hypotheses(
-          _NUM_SCENARIOS.value, _NUM_SAMPLES.value, _SEED.value),
+          _NUM_SCENARIOS.value, _NUM_SAMPLES.value, _SEED.value
+      ),
       "recovery": lambda: recovery_table(_NUM_SCENARIOS.value, _SEED.value + 1),
   }
   unknown = set(_SECTIONS.value) - set(sections)

@@ -48,11 +48,19 @@ _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory (its test split
 _VEHICLES = flags.DEFINE_integer("vehicles", 30, "Vehicles in the frame.", lower_bound=1)
 _CALLS = flags.DEFINE_integer("calls", 50, "Warm calls timed.", lower_bound=1)
 _SAMPLES = flags.DEFINE_list("samples", ["9", "64"], "Samples per vehicle, one row each.")
-_RUNS = flags.DEFINE_integer("first_call_runs", 3, "Fresh processes per first-call timing "
-                             "(0 = skip part 3).", lower_bound=0)
+_RUNS = flags.DEFINE_integer(
+    "first_call_runs",
+    3,
+    "Fresh processes per first-call timing " "(0 = skip part 3).",
+    lower_bound=0,
+)
 _OUT = flags.DEFINE_string("out", None, "JSON file of the results (none: print only).")
-_CHILD = flags.DEFINE_enum("child", None, ["package", "exported"], "Internal: time one first "
-                           "call in this process and print it as JSON.")
+_CHILD = flags.DEFINE_enum(
+    "child",
+    None,
+    ["package", "exported"],
+    "Internal: time one first " "call in this process and print it as JSON.",
+)
 _EXPORT_DIR = flags.DEFINE_string("export_dir", None, "Internal: the artefacts of --child.")
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir")
@@ -60,10 +68,21 @@ cli.input_dirs("tokenizer_dir", "diffusion_dir", "data_dir")
 
 def machine() -> dict:
   """CPU model, visible cores and the 1-minute load average at the time of the call."""
-  model = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
-                if line.startswith("model name")), "unknown")
-  return {"cpu": model, "cores": os.cpu_count(), "load_1min": os.getloadavg()[0],
-          "backend": jax.default_backend(), "jax": jax.__version__}
+  model = next(
+      (
+          line.split(":", 1)[1].strip()
+          for line in open("/proc/cpuinfo")
+          if line.startswith("model name")
+      ),
+      "unknown",
+  )
+  return {
+      "cpu": model,
+      "cores": os.cpu_count(),
+      "load_1min": os.getloadavg()[0],
+      "backend": jax.default_backend(),
+      "jax": jax.__version__,
+  }
 
 
 def frame(data_dir, vehicles: int):
@@ -81,13 +100,17 @@ def call_times(fn, calls: int) -> dict:
     jax.block_until_ready(fn())
     times.append(1e3 * (time.perf_counter() - start))
   warm = np.array(times[1:])
-  return {"first_ms": times[0], "median_ms": float(np.median(warm)),
-          "p90_ms": float(np.percentile(warm, 90))}
+  return {
+      "first_ms": times[0],
+      "median_ms": float(np.median(warm)),
+      "p90_ms": float(np.percentile(warm, 90)),
+  }
 
 
 def with_samples(predictor: Predictor, n: int, chunk: int) -> Predictor:
-  return dataclasses.replace(predictor, chunk_size=chunk, sampling=dataclasses.replace(
-      predictor.sampling, num_samples=n))
+  return dataclasses.replace(
+      predictor, chunk_size=chunk, sampling=dataclasses.replace(predictor.sampling, num_samples=n)
+  )
 
 
 def parts(predictor: Predictor, scenarios, calls: int) -> dict:
@@ -99,8 +122,12 @@ def parts(predictor: Predictor, scenarios, calls: int) -> dict:
   rollout = jax.jit(lambda c: vmm.rollout(c, v0[:, None], psi0[:, None]))
   hyp = jax.jit(lambda t: fit_hypotheses(t, config=predictor.sampling.hypotheses))
   whole = lambda: predictor(scenarios, seed=0).prediction.mean
-  timed = {"tokeniser": lambda: tok(xi, mask), "vmm": lambda: rollout(out.controls),
-           "hypotheses": lambda: hyp(out.trajectories), "whole": whole}
+  timed = {
+      "tokeniser": lambda: tok(xi, mask),
+      "vmm": lambda: rollout(out.controls),
+      "hypotheses": lambda: hyp(out.trajectories),
+      "whole": whole,
+  }
   ms = {name: call_times(fn, calls)["median_ms"] for name, fn in timed.items()}
   ms["sampler (whole - others)"] = ms["whole"] - ms["tokeniser"] - ms["vmm"] - ms["hypotheses"]
   return ms
@@ -112,13 +139,11 @@ def child(kind: str) -> dict:
   n = int(_SAMPLES.value[0])
   start = time.perf_counter()
   if kind == "package":
-    predictor = with_samples(Predictor.load(_TOKENIZER.value, _DIFFUSION.value), n,
-                             _VEHICLES.value)
+    predictor = with_samples(Predictor.load(_TOKENIZER.value, _DIFFUSION.value), n, _VEHICLES.value)
     loaded = time.perf_counter()
     jax.block_until_ready(predictor(scenarios, seed=0).prediction.mean)
   else:
-    exported = jax.export.deserialize(
-        (Path(_EXPORT_DIR.value) / export.PREDICT_FILE).read_bytes())
+    exported = jax.export.deserialize((Path(_EXPORT_DIR.value) / export.PREDICT_FILE).read_bytes())
     loaded = time.perf_counter()
     jax.block_until_ready(exported.call(*export.call_inputs(scenarios, 0))["mean"])
   done = time.perf_counter()
@@ -133,10 +158,17 @@ def first_calls(predictor: Predictor, runs: int) -> dict:
     for kind in ("package", "exported"):
       rows = []
       for _ in range(runs):
-        cmd = [sys.executable, __file__, f"--child={kind}", f"--export_dir={tmp}",
-               *(f"--{f}={getattr(flags.FLAGS, f)}" for f in
-                 ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles")),
-               f"--samples={_SAMPLES.value[0]}"]
+        cmd = [
+            sys.executable,
+            __file__,
+            f"--child={kind}",
+            f"--export_dir={tmp}",
+            *(
+                f"--{f}={getattr(flags.FLAGS, f)}"
+                for f in ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles")
+            ),
+            f"--samples={_SAMPLES.value[0]}",
+        ]
         done = subprocess.run(cmd, capture_output=True, text=True, check=True)
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
       results[kind] = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
@@ -153,23 +185,35 @@ def main(argv):
   print(f"machine: {info}")
   base = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   scenarios = frame(_DATA.value, _VEHICLES.value)
-  result = {"machine": info, "vehicles": _VEHICLES.value, "calls": _CALLS.value,
-            "sampler": f"{base.sampling.sampler}({base.sampling.steps})", "frame": {}}
+  result = {
+      "machine": info,
+      "vehicles": _VEHICLES.value,
+      "calls": _CALLS.value,
+      "sampler": f"{base.sampling.sampler}({base.sampling.steps})",
+      "frame": {},
+  }
   for n in samples:
     predictor = with_samples(base, n, _VEHICLES.value)
     row = call_times(lambda p=predictor: p(scenarios, seed=0).prediction.mean, _CALLS.value)
     result["frame"][n] = row
-    print(f"{_VEHICLES.value} vehicles, {n} samples: first {row['first_ms']:.0f} ms, median "
-          f"{row['median_ms']:.1f} ms, p90 {row['p90_ms']:.1f} ms")
-  result["parts_ms"] = parts(with_samples(base, samples[0], _VEHICLES.value), scenarios,
-                             _CALLS.value)
-  print(f"parts ({samples[0]} samples, median ms): "
-        + ", ".join(f"{k} {v:.1f}" for k, v in result["parts_ms"].items()))
+    print(
+        f"{_VEHICLES.value} vehicles, {n} samples: first {row['first_ms']:.0f} ms, median "
+        f"{row['median_ms']:.1f} ms, p90 {row['p90_ms']:.1f} ms"
+    )
+  result["parts_ms"] = parts(
+      with_samples(base, samples[0], _VEHICLES.value), scenarios, _CALLS.value
+  )
+  print(
+      f"parts ({samples[0]} samples, median ms): "
+      + ", ".join(f"{k} {v:.1f}" for k, v in result["parts_ms"].items())
+  )
   if _RUNS.value:
     result["first_call"] = first_calls(base, _RUNS.value)
     for kind, row in result["first_call"].items():
-      print(f"fresh process, {kind}: load {row['load_s']:.2f} s, first call "
-            f"{row['first_call_s']:.2f} s")
+      print(
+          f"fresh process, {kind}: load {row['load_s']:.2f} s, first call "
+          f"{row['first_call_s']:.2f} s"
+      )
   result["machine"]["load_1min_end"] = os.getloadavg()[0]
   if _OUT.value:
     atomic.write_json(_OUT.value, result)

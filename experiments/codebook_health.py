@@ -23,18 +23,19 @@ from ml_collections import config_flags
 from cvmdx_jax import cli
 from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.data import dataset
-from cvmdx_jax.evaluation import metrics
-from cvmdx_jax.evaluation import baselines
+from cvmdx_jax.evaluation import baselines, metrics
 from cvmdx_jax.models import quantizer as quantizer_lib
 from cvmdx_jax.runs import tokens
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
-    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:demo.", lock_config=True)
+    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:demo.", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (one run per row).")
-_SIZES = flags.DEFINE_list("codebook_sizes", ["30", "60", "90", "128", "256"],
-                           "Codebook sizes Q to compare.")
+_SIZES = flags.DEFINE_list(
+    "codebook_sizes", ["30", "60", "90", "128", "256"], "Codebook sizes Q to compare."
+)
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")
 cli.int_list("codebook_sizes", 1)
@@ -43,8 +44,10 @@ cli.typed_config("config", TokenizerRunConfig.from_config)  # checked; rows vary
 
 def _errors(pred, test) -> str:
   """'ADE | FDE' in metres of (M, 125, 2) predictions on the test split."""
-  return (f"{float(metrics.ade(pred, test.future).mean()):.3f} | "
-          f"{float(metrics.fde(pred, test.future).mean()):.3f}")
+  return (
+      f"{float(metrics.ade(pred, test.future).mean()):.3f} | "
+      f"{float(metrics.fde(pred, test.future).mean()):.3f}"
+  )
 
 
 def _row(run_dir: Path, q: int, kind: str, splits: dict) -> str:
@@ -52,11 +55,14 @@ def _row(run_dir: Path, q: int, kind: str, splits: dict) -> str:
   test, _ = tokens.load_tokens(tokens.tokens_path(run_dir, "test"))
   in_use, perplexity = quantizer_lib.codebook_stats(train.q, q)
   last = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[-1])
-  pred = baselines.token_mean(splits["train"].controls, train.q, test.q, splits["test"].v0,
-                              splits["test"].psi0, q)
-  return (f"| {q} | {kind} | {int(in_use)} | {100 * int(in_use) / q:.0f} % | "
-          f"{float(perplexity):.1f} | {last['train_accuracy']:.3f} | {last['step']} | "
-          f"{_errors(pred, splits['test'])} |")
+  pred = baselines.token_mean(
+      splits["train"].controls, train.q, test.q, splits["test"].v0, splits["test"].psi0, q
+  )
+  return (
+      f"| {q} | {kind} | {int(in_use)} | {100 * int(in_use) / q:.0f} % | "
+      f"{float(perplexity):.1f} | {last['train_accuracy']:.3f} | {last['step']} | "
+      f"{_errors(pred, splits['test'])} |"
+  )
 
 
 def main(argv):
@@ -66,10 +72,12 @@ def main(argv):
   config = _CONFIG.value
   splits = {name: dataset.load_split(config.data_dir, name) for name in ("train", "test")}
   cv = baselines.constant_velocity(splits["test"].xi)
-  rows = ["| Q | quantizer | entries in use | share of Q | perplexity | train acc. | steps | "
-          "token-mean ADE [m] | token-mean FDE [m] |",
-          "|---|---|---|---|---|---|---|---|---|",
-          f"| - | constant velocity | | | | | | {_errors(cv, splits['test'])} |"]
+  rows = [
+      "| Q | quantizer | entries in use | share of Q | perplexity | train acc. | steps | "
+      "token-mean ADE [m] | token-mean FDE [m] |",
+      "|---|---|---|---|---|---|---|---|---|",
+      f"| - | constant velocity | | | | | | {_errors(cv, splits['test'])} |",
+  ]
   for q in (int(s) for s in _SIZES.value):
     for kind in ("cvq", "vq"):
       run = config.copy_and_resolve_references()

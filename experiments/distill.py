@@ -8,16 +8,17 @@ the same command resumes from the last complete checkpoint; a workdir distilled 
 another teacher is refused.
 """
 
-from absl import app, flags, logging
 import jax
+from absl import app, flags, logging
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
 from cvmdx_jax.config.runs import DistillRunConfig
 from cvmdx_jax.train import distill
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Distillation config file.",
-                                          lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Distillation config file.", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory of the student.")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")

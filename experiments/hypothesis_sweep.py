@@ -23,14 +23,15 @@ import dataclasses
 import time
 from pathlib import Path
 
-from absl import flags
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import flags
 
 from cvmdx_jax import cli
 from cvmdx_jax.config.sampling import MAX_SAMPLES, HypothesisConfig
-from cvmdx_jax.data import dataset, scenarios as scenarios_lib
+from cvmdx_jax.data import dataset
+from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import scoring, sweeps
 from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
@@ -43,22 +44,33 @@ _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _OUT = flags.DEFINE_string("out_dir", None, "Where sweep.md and sweep.json go.")
 _SPLIT = flags.DEFINE_string("split", "val", "Split to evaluate (choose on val).")
-_NUM = flags.DEFINE_integer("num_scenarios", 0, "Class-balanced subset size (0 = all).",
-                            lower_bound=0)
+_NUM = flags.DEFINE_integer(
+    "num_scenarios", 0, "Class-balanced subset size (0 = all).", lower_bound=0
+)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and subset seed.")
 _SAMPLES = flags.DEFINE_list("num_samples", ["9", "18", "36", "64"], "Sample counts N.")
 cli.int_list("num_samples", 1, MAX_SAMPLES)  # a count beyond would not fit in memory
-_METHODS = flags.DEFINE_list("methods", ["bic", "kmeans:0", "kmeans:0.5", "kmeans:1"],
-                             "'bic' or 'kmeans:<endpoint_weight>'.")
-_TIMING = flags.DEFINE_integer("timing_scenarios", 64, "Scenarios of the timing calls.",
-                               lower_bound=1)
+_METHODS = flags.DEFINE_list(
+    "methods", ["bic", "kmeans:0", "kmeans:0.5", "kmeans:1"], "'bic' or 'kmeans:<endpoint_weight>'."
+)
+_TIMING = flags.DEFINE_integer(
+    "timing_scenarios", 64, "Scenarios of the timing calls.", lower_bound=1
+)
 _SAMPLES_FILE = flags.DEFINE_string(
-    "samples_file", None, "An .npz of the samples: read if it exists (the sampling is "
-    "skipped), else written after sampling, so that more methods can be scored later.")
-_MAX_N = flags.DEFINE_integer("max_num_samples", 0, "Largest N the choice may take (the cost "
-                              "bound; 0 = any).", lower_bound=0)
-_TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative mean-ADE loss vs the "
-                          "reference.", lower_bound=0.0)
+    "samples_file",
+    None,
+    "An .npz of the samples: read if it exists (the sampling is "
+    "skipped), else written after sampling, so that more methods can be scored later.",
+)
+_MAX_N = flags.DEFINE_integer(
+    "max_num_samples",
+    0,
+    "Largest N the choice may take (the cost " "bound; 0 = any).",
+    lower_bound=0,
+)
+_TOL = flags.DEFINE_float(
+    "tolerance", 0.02, "Allowed relative mean-ADE loss vs the " "reference.", lower_bound=0.0
+)
 
 
 def _method(spec: str, base: HypothesisConfig) -> HypothesisConfig:
@@ -71,19 +83,36 @@ def _method(spec: str, base: HypothesisConfig) -> HypothesisConfig:
 def score(trajectories, config: HypothesisConfig, data) -> dict:
   """The sweep's columns (means over `data`) for samples (M, N, T, 2) and `config`."""
   hyp = fit_hypotheses(trajectories, config=config)
-  pred = Prediction(controls=jnp.zeros_like(trajectories), trajectories=trajectories,
-                    mean=jnp.mean(trajectories, axis=1), hypotheses=hyp)
-  out = PredictorOutput(prediction=pred, q=np.zeros(len(data), int), delta=np.zeros(len(data)),
-                        out_of_distribution=np.zeros(len(data), bool))
+  pred = Prediction(
+      controls=jnp.zeros_like(trajectories),
+      trajectories=trajectories,
+      mean=jnp.mean(trajectories, axis=1),
+      hypotheses=hyp,
+  )
+  out = PredictorOutput(
+      prediction=pred,
+      q=np.zeros(len(data), int),
+      delta=np.zeros(len(data)),
+      out_of_distribution=np.zeros(len(data), bool),
+  )
   gt = jnp.asarray(data.future)
   errors = scoring.cvmdx_errors(out, gt, data.label)
   ece, _ = scoring.calibration(hyp.means, hyp.probs, gt, data.label)
   mean, best = errors["cvmdx_mean"], errors["cvmdx_best_of_k"]
-  row = {"mean_ade": mean["ade"], "mean_fde": mean["fde"], "min_ade_k": best["ade"],
-         "min_fde_k": best["fde"], "brier_min_fde": best["brier_min_fde"],
-         "energy_score": mean["energy_score"], "nll_final": best["nll_final"]}
-  return {**{k: float(np.mean(v)) for k, v in row.items()}, "ece": ece["all"]["ece"],
-          "single_mode_share": float(np.mean(np.asarray(hyp.num_modes) == 1))}
+  row = {
+      "mean_ade": mean["ade"],
+      "mean_fde": mean["fde"],
+      "min_ade_k": best["ade"],
+      "min_fde_k": best["fde"],
+      "brier_min_fde": best["brier_min_fde"],
+      "energy_score": mean["energy_score"],
+      "nll_final": best["nll_final"],
+  }
+  return {
+      **{k: float(np.mean(v)) for k, v in row.items()},
+      "ece": ece["all"]["ece"],
+      "single_mode_share": float(np.mean(np.asarray(hyp.num_modes) == 1)),
+  }
 
 
 def seconds_per_scenario(fn, count: int) -> float:
@@ -101,17 +130,19 @@ def sweep() -> tuple[list[dict], str, int]:
     data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   counts = sorted(int(n) for n in _SAMPLES.value)
-  configs = {spec: _method(spec, predictor.sampling.hypotheses)
-             for spec in _METHODS.value}
+  configs = {spec: _method(spec, predictor.sampling.hypotheses) for spec in _METHODS.value}
   saved = Path(_SAMPLES_FILE.value) if _SAMPLES_FILE.value else None
   if saved and saved.is_file():
     samples = jnp.asarray(np.load(saved)["trajectories"])
     if samples.shape[:2] != (len(data), counts[-1]):
-      raise UserError(f"--samples_file {saved}: shape {samples.shape} does not match "
-                       f"{len(data)} scenarios x {counts[-1]} samples")
+      raise UserError(
+          f"--samples_file {saved}: shape {samples.shape} does not match "
+          f"{len(data)} scenarios x {counts[-1]} samples"
+      )
   else:
-    full = dataclasses.replace(predictor, sampling=dataclasses.replace(
-        predictor.sampling, num_samples=counts[-1]))
+    full = dataclasses.replace(
+        predictor, sampling=dataclasses.replace(predictor.sampling, num_samples=counts[-1])
+    )
     samples = jnp.asarray(full(data, seed=_SEED.value).prediction.trajectories)
     if saved:
       atomic.write_npz(saved, trajectories=np.asarray(samples))
@@ -119,18 +150,27 @@ def sweep() -> tuple[list[dict], str, int]:
   fit = jax.jit(fit_hypotheses, static_argnames=("c_max", "config"))
   rows = []
   for n in counts:
-    at_n = dataclasses.replace(predictor, sampling=dataclasses.replace(
-        predictor.sampling, num_samples=n))
-    predict_s = seconds_per_scenario(lambda: at_n(timing, seed=_SEED.value).mean,
-                                     len(timing))
+    at_n = dataclasses.replace(
+        predictor, sampling=dataclasses.replace(predictor.sampling, num_samples=n)
+    )
+    predict_s = seconds_per_scenario(lambda: at_n(timing, seed=_SEED.value).mean, len(timing))
     for spec, config in configs.items():
       fit_s = seconds_per_scenario(lambda: fit(samples[:, :n], config=config).probs, len(data))
-      rows.append({"method": spec, "num_samples": n, "predict_s": predict_s,
-                   "hypotheses_s": fit_s, **score(samples[:, :n], config, data)})
+      rows.append(
+          {
+              "method": spec,
+              "num_samples": n,
+              "predict_s": predict_s,
+              "hypotheses_s": fit_s,
+              **score(samples[:, :n], config, data),
+          }
+      )
       print(rows[-1], flush=True)
-  note = (f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} scenarios, seed "
-          f"{_SEED.value}, sampler {predictor.sampling.sampler} S = {predictor.sampling.steps}, "
-          f"reference: bic with N = {predictor.sampling.num_samples}")
+  note = (
+      f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} scenarios, seed "
+      f"{_SEED.value}, sampler {predictor.sampling.sampler} S = {predictor.sampling.steps}, "
+      f"reference: bic with N = {predictor.sampling.num_samples}"
+  )
   return rows, note, predictor.sampling.num_samples
 
 
@@ -143,14 +183,23 @@ def main(argv):
   rows, note, predictor_n = sweep()
   ref = [r for r in rows if r["method"] == "bic" and r["num_samples"] == predictor_n]
   if not ref:
-    raise UserError(f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
-                     "evaluated; include it in --methods and --num_samples")
+    raise UserError(
+        f"hypothesis_sweep: the reference (bic, N = {predictor_n}) was not "
+        "evaluated; include it in --methods and --num_samples"
+    )
   choice = sweeps.choose_hypotheses(rows, ref[0], _TOL.value, _MAX_N.value)
   out = Path(_OUT.value)
   out.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(out / "sweep.json", {"note": note, "tolerance": _TOL.value,
-                                         "max_num_samples": _MAX_N.value, "rows": rows,
-                                         "choice": choice})
+  atomic.write_json(
+      out / "sweep.json",
+      {
+          "note": note,
+          "tolerance": _TOL.value,
+          "max_num_samples": _MAX_N.value,
+          "rows": rows,
+          "choice": choice,
+      },
+  )
   table = sweeps.hypotheses_table(rows, choice, note, _TOL.value, _MAX_N.value)
   atomic.write_text(out / "sweep.md", table)
   print(table)

@@ -20,9 +20,9 @@ import dataclasses
 import shutil
 from pathlib import Path
 
-from absl import flags
 import jax
 import jax.numpy as jnp
+from absl import flags
 
 from configs import diffusion as diffusion_configs
 from cvmdx_jax import cli
@@ -31,18 +31,22 @@ from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference.bundles import load_tokenizer
 from cvmdx_jax.models import official_import
-from cvmdx_jax.models.official_state import NumHeadsError, OFFICIAL_NUM_HEADS
+from cvmdx_jax.models.official_state import OFFICIAL_NUM_HEADS, NumHeadsError
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.storage import checkpointing, checksums, locking
 
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "Official model or EMA state dict (.pt).")
 _WORKDIR = flags.DEFINE_string("workdir", None, "New diffusion run directory to write.")
 _KEY = flags.DEFINE_string("key", None, "Entry of a dict holding several state dicts.")
-_NUM_HEADS = flags.DEFINE_integer("num_heads", OFFICIAL_NUM_HEADS,
-                                  "Attention heads of the official model (not stored in it).",
-                                  lower_bound=1)
-_TOKENIZER_DIR = flags.DEFINE_string("tokenizer_dir", None,
-                                     "Tokeniser run to pair with (codebook size Q).")
+_NUM_HEADS = flags.DEFINE_integer(
+    "num_heads",
+    OFFICIAL_NUM_HEADS,
+    "Attention heads of the official model (not stored in it).",
+    lower_bound=1,
+)
+_TOKENIZER_DIR = flags.DEFINE_string(
+    "tokenizer_dir", None, "Tokeniser run to pair with (codebook size Q)."
+)
 flags.mark_flags_as_required(["checkpoint", "workdir"])
 cli.input_dirs("tokenizer_dir")
 cli.output_dirs("workdir")
@@ -53,8 +57,11 @@ def write_run(workdir: Path, config: DiffusionRunConfig, params, fingerprint: di
   holding {params, ema_params} (both the imported weights) and step 0, with metadata
   {"fingerprint": fingerprint}, then config.json (`storage.checksums`): a directory is a run
   once its config.json is there (`inference.bundles.load_denoiser` refuses it before)."""
-  state = {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
-           "step": jnp.zeros((), jnp.int32)}
+  state = {
+      "params": params,
+      "ema_params": jax.tree.map(jnp.copy, params),
+      "step": jnp.zeros((), jnp.int32),
+  }
   with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=1) as ckpts:
     ckpts.save(1, state, {"fingerprint": fingerprint})
   layout.write_run_config(workdir, config)
@@ -85,8 +92,9 @@ def main(argv):
   if not checkpoint.is_file():
     raise FileNotFoundError(f"--checkpoint={checkpoint}: no such file")
   try:
-    cfg, params = official_import.load_official(checkpoint, key=_KEY.value,
-                                                num_heads=_NUM_HEADS.value)
+    cfg, params = official_import.load_official(
+        checkpoint, key=_KEY.value, num_heads=_NUM_HEADS.value
+    )
   except NumHeadsError as e:
     raise UserError(f"--num_heads={_NUM_HEADS.value}: {e}") from None
   tokens_meta = {}
@@ -95,9 +103,11 @@ def main(argv):
   if _TOKENIZER_DIR.value:
     bundle = load_tokenizer(_TOKENIZER_DIR.value)
     if bundle.config.quantizer.codebook_size != cfg.num_tokens:
-      raise UserError(f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
-                       f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
-                       f"{cfg.num_tokens}")
+      raise UserError(
+          f"--tokenizer_dir={_TOKENIZER_DIR.value} has codebook size "
+          f"{bundle.config.quantizer.codebook_size}, the checkpoint Q = "
+          f"{cfg.num_tokens}"
+      )
     tokens_meta = {"checkpoint": bundle.checkpoint.to_dict()}  # fingerprint, step, params_id
     config.tokenizer_dir = _TOKENIZER_DIR.value
   config.diffusion.control_scale = PAPER_SCALE  # the official (4, 0.7)
@@ -106,8 +116,10 @@ def main(argv):
   digest = checksums.file_sha256(checkpoint)[:16]
   fingerprint = fingerprints.diffusion(config, f"official:{digest}", tokens_meta)
   _write_once(workdir, config, params, fingerprint)
-  print(f"imported {checkpoint} (Q = {cfg.num_tokens}, "
-        f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}")
+  print(
+      f"imported {checkpoint} (Q = {cfg.num_tokens}, "
+      f"{sum(x.size for x in jax.tree.leaves(params)):,} parameters) into {workdir}"
+  )
 
 
 if __name__ == "__main__":

@@ -18,11 +18,12 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from cvmdx_jax import cli
-from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import dataset, summary
+from cvmdx_jax.storage import atomic
 
-_CONFIG = config_flags.DEFINE_config_file("config", "configs/dataset.py", "Dataset config.",
-                                          lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", "configs/dataset.py", "Dataset config.", lock_config=True
+)
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Output directory.")
 cli.output_dirs("data_dir")
 cli.typed_config("config", dataset.checked_config)
@@ -33,8 +34,11 @@ def main(argv):
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   start = time.time()
   splits = dataset.build(_CONFIG.value, _DATA_DIR.value)
-  result = {"dataset_id": dataset.dataset_id(_DATA_DIR.value),
-            "seconds": round(time.time() - start, 1), "splits": summary.summarize(splits)}
+  result = {
+      "dataset_id": dataset.dataset_id(_DATA_DIR.value),
+      "seconds": round(time.time() - start, 1),
+      "splits": summary.summarize(splits),
+  }
   text = json.dumps(result, indent=1)
   print(text)
   atomic.write_text(Path(_DATA_DIR.value) / "summary.json", text + "\n")

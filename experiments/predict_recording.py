@@ -39,24 +39,35 @@ from cvmdx_jax.storage import atomic, checksums, identity
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion (or student) run directory.")
 _RECORDING = flags.DEFINE_string("recording", None, "A recording's <dir>/NN_tracks.csv.")
-_HIGHD = flags.DEFINE_string("highd_dir", None, "Directory of highD-format recordings "
-                             "(with --recording_id, instead of --recording).")
-_RECORDING_ID = flags.DEFINE_integer("recording_id", None, "Recording NN in --highd_dir.",
-                                     lower_bound=0)
+_HIGHD = flags.DEFINE_string(
+    "highd_dir",
+    None,
+    "Directory of highD-format recordings " "(with --recording_id, instead of --recording).",
+)
+_RECORDING_ID = flags.DEFINE_integer(
+    "recording_id", None, "Recording NN in --highd_dir.", lower_bound=0
+)
 _EVERY = flags.DEFINE_integer("every", 5, "Predict at every k-th frame.", lower_bound=1)
-_START = flags.DEFINE_string("start", None, "First frame of the window: a frame number, or "
-                             "seconds from the recording's first frame with an 's' (10s).")
+_START = flags.DEFINE_string(
+    "start",
+    None,
+    "First frame of the window: a frame number, or "
+    "seconds from the recording's first frame with an 's' (10s).",
+)
 _END = flags.DEFINE_string("end", None, "Last frame of the window (as --start).")
 _OUT = flags.DEFINE_string("out", None, "The table: <file>.parquet or <file>.csv.gz.")
 _SAMPLES = flags.DEFINE_bool("samples", False, "Also write every sampled trajectory.")
-_NUM_SAMPLES = flags.DEFINE_integer("num_samples", None, "Samples per vehicle instead of the "
-                                    "run's.", lower_bound=1)
+_NUM_SAMPLES = flags.DEFINE_integer(
+    "num_samples", None, "Samples per vehicle instead of the " "run's.", lower_bound=1
+)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_bound=2**32 - 1)
-_CHUNK = flags.DEFINE_integer("chunk_size", 256, "Vehicle-frames per jitted call.",
-                              lower_bound=1)
+_CHUNK = flags.DEFINE_integer("chunk_size", 256, "Vehicle-frames per jitted call.", lower_bound=1)
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")
-_SECTION = flags.DEFINE_list("animation_x", None, "x0,x1: the section of the road the GIF "
-                             "shows (image x, m; default the whole road).")
+_SECTION = flags.DEFINE_list(
+    "animation_x",
+    None,
+    "x0,x1: the section of the road the GIF " "shows (image x, m; default the whole road).",
+)
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "out"])
 cli.input_dirs("tokenizer_dir", "diffusion_dir", "highd_dir")
 
@@ -64,8 +75,9 @@ cli.input_dirs("tokenizer_dir", "diffusion_dir", "highd_dir")
 def _source() -> tuple[Path, int]:
   """(directory, recording id) from --recording or --highd_dir / --recording_id."""
   if (_RECORDING.value is None) == (_HIGHD.value is None):
-    raise UserError("give either --recording=<dir>/NN_tracks.csv or --highd_dir with "
-                    "--recording_id")
+    raise UserError(
+        "give either --recording=<dir>/NN_tracks.csv or --highd_dir with " "--recording_id"
+    )
   if _RECORDING.value is not None:
     path = Path(_RECORDING.value)
     match = re.fullmatch(r"([0-9]+)_tracks\.csv", path.name)
@@ -84,13 +96,17 @@ def _frame(flag, value: str | None, first: int, last: int, default: int) -> int:
   if value is None:
     return default
   try:
-    frame = (first + round(float(value[:-1]) * constants.FRAME_RATE_HZ)
-             if value.endswith("s") else int(value))
+    frame = (
+        first + round(float(value[:-1]) * constants.FRAME_RATE_HZ)
+        if value.endswith("s")
+        else int(value)
+    )
   except ValueError as err:
     raise UserError(f"--{flag}={value}: expected a frame number or seconds like 10s") from err
   if not first <= frame <= last:
-    raise UserError(f"--{flag}={value}: frame {frame} outside the recording (frames "
-                    f"{first}..{last})")
+    raise UserError(
+        f"--{flag}={value}: frame {frame} outside the recording (frames " f"{first}..{last})"
+    )
   return frame
 
 
@@ -102,11 +118,13 @@ def _accuracy(preds, rec, frames) -> dict:
     return {"count": 0}
   gt, hyps, valid = future[known], preds.means[known], preds.probs[known] > 0
   mean = preds.weighted_mean[known]
-  values = {"ade": metrics.ade(mean, gt), "fde": metrics.fde(mean, gt),
-            "min_ade": metrics.min_ade_k(hyps, gt, valid),
-            "min_fde": metrics.min_fde_k(hyps, gt, valid)}
-  return {"count": int(known.sum()), **{k: round(float(np.mean(v)), 4)
-                                        for k, v in values.items()}}
+  values = {
+      "ade": metrics.ade(mean, gt),
+      "fde": metrics.fde(mean, gt),
+      "min_ade": metrics.min_ade_k(hyps, gt, valid),
+      "min_fde": metrics.min_fde_k(hyps, gt, valid),
+  }
+  return {"count": int(known.sum()), **{k: round(float(np.mean(v)), 4) for k, v in values.items()}}
 
 
 def _section() -> tuple[float, float] | None:
@@ -116,8 +134,9 @@ def _section() -> tuple[float, float] | None:
   try:
     x0, x1 = (float(x) for x in _SECTION.value)
   except ValueError as err:
-    raise UserError(f"--animation_x={','.join(_SECTION.value)}: expected two numbers "
-                    "x0,x1") from err
+    raise UserError(
+        f"--animation_x={','.join(_SECTION.value)}: expected two numbers " "x0,x1"
+    ) from err
   if not x0 < x1:
     raise UserError(f"--animation_x={','.join(_SECTION.value)}: needs x0 < x1")
   return x0, x1
@@ -125,8 +144,16 @@ def _section() -> tuple[float, float] | None:
 
 def _code_version() -> dict:
   try:
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent, timeout=10).stdout.strip() or None
+    commit = (
+        subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            timeout=10,
+        ).stdout.strip()
+        or None
+    )
   except OSError:
     commit = None
   return {"cvmdx_jax": cvmdx_jax.__version__, "git_commit": commit}
@@ -134,17 +161,34 @@ def _code_version() -> dict:
 
 def _provenance(predictor, data_dir, recording_id, window, summary, out) -> dict:
   paths = highd.recording_paths(data_dir, recording_id)
-  runs = {name: {"dir": str(path), "fingerprint_id": identity.content_id(
-      identity.to_json(bundle.fingerprint.to_dict()))}
-          for name, path, bundle in (("tokenizer", _TOKENIZER.value, predictor.tokenizer),
-                                     ("diffusion", _DIFFUSION.value, predictor.denoiser))}
+  runs = {
+      name: {
+          "dir": str(path),
+          "fingerprint_id": identity.content_id(identity.to_json(bundle.fingerprint.to_dict())),
+      }
+      for name, path, bundle in (
+          ("tokenizer", _TOKENIZER.value, predictor.tokenizer),
+          ("diffusion", _DIFFUSION.value, predictor.denoiser),
+      )
+  }
   runs["tokenizer"]["checkpoint"] = identity.to_json(predictor.tokenizer.checkpoint.to_dict())
-  return {"recording": {"id": recording_id, "files": {
+  return {
+      "recording": {
+          "id": recording_id,
+          "files": {
               kind: {"name": path.name, "sha256": checksums.file_sha256(path)}
-              for kind, path in paths.items()}},
-          "window": window, "seed": _SEED.value, "samples": _SAMPLES.value,
-          "sampling": identity.to_json(dataclasses.asdict(predictor.sampling)), "runs": runs,
-          "code": _code_version(), "table": str(out), "summary": summary}
+              for kind, path in paths.items()
+          },
+      },
+      "window": window,
+      "seed": _SEED.value,
+      "samples": _SAMPLES.value,
+      "sampling": identity.to_json(dataclasses.asdict(predictor.sampling)),
+      "runs": runs,
+      "code": _code_version(),
+      "table": str(out),
+      "summary": summary,
+  }
 
 
 def main(argv):
@@ -161,27 +205,39 @@ def main(argv):
     raise UserError(f"--end={_END.value}: before --start={_START.value}")
   frames = list(range(start, end + 1, _EVERY.value))
   if len(frames_lib.observable_rows(rec, frames)) == 0:
-    raise UserError(f"{rec.path}: no vehicle has 3 s of history in frames {start}..{end} "
-                    "(--start / --end)")
+    raise UserError(
+        f"{rec.path}: no vehicle has 3 s of history in frames {start}..{end} " "(--start / --end)"
+    )
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value, chunk_size=_CHUNK.value)
   if _NUM_SAMPLES.value is not None:
-    predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
-        predictor.sampling, num_samples=_NUM_SAMPLES.value))
-  preds, summary = recording.predict_frames(predictor, rec, frames, seed=_SEED.value,
-                                            samples=_SAMPLES.value, every=_EVERY.value)
+    predictor = dataclasses.replace(
+        predictor, sampling=dataclasses.replace(predictor.sampling, num_samples=_NUM_SAMPLES.value)
+    )
+  preds, summary = recording.predict_frames(
+      predictor, rec, frames, seed=_SEED.value, samples=_SAMPLES.value, every=_EVERY.value
+  )
   summary["accuracy"] = _accuracy(preds, rec, frames)
   table = recording.table(preds)
   recording.write_table(table, _OUT.value)
   if _ANIMATION.value:
     from cvmdx_jax.evaluation import animation  # matplotlib only where a GIF is asked for
-    gif = animation.render_gif(rec, frames_lib.scene(data_dir, recording_id), frames, preds,
-                               fps=constants.FRAME_RATE_HZ / _EVERY.value, x_range=section)
+
+    gif = animation.render_gif(
+        rec,
+        frames_lib.scene(data_dir, recording_id),
+        frames,
+        preds,
+        fps=constants.FRAME_RATE_HZ / _EVERY.value,
+        x_range=section,
+    )
     atomic.write_bytes(_ANIMATION.value, gif)
   window = {"start": start, "end": end, "every": _EVERY.value}
   summary["table_rows"] = len(table)
-  atomic.write_json(f"{_OUT.value}.provenance.json",
-                    _provenance(predictor, data_dir, recording_id, window, summary, _OUT.value),
-                    indent=1)
+  atomic.write_json(
+      f"{_OUT.value}.provenance.json",
+      _provenance(predictor, data_dir, recording_id, window, summary, _OUT.value),
+      indent=1,
+  )
   for key, value in summary.items():
     print(f"{key}: {value}")
 

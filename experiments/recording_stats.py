@@ -11,8 +11,8 @@ from pathlib import Path
 from absl import app, flags
 
 from cvmdx_jax import cli
-from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import sumo_stats
+from cvmdx_jax.storage import atomic
 
 _DATA_DIR = flags.DEFINE_string("data_dir", "data/sumo", "Dataset directory (make_dataset.py).")
 cli.input_dirs("data_dir")
@@ -25,8 +25,11 @@ def main(argv):
   columns = list(rows[0])
   lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
   for row in rows:
-    lines.append("| " + " | ".join("-".join(map(str, v)) if isinstance(v, list) else str(v)
-                                   for v in row.values()) + " |")
+    lines.append(
+        "| "
+        + " | ".join("-".join(map(str, v)) if isinstance(v, list) else str(v) for v in row.values())
+        + " |"
+    )
   print("\n".join(lines))
   atomic.write_json(Path(_DATA_DIR.value) / "recording_stats.json", rows)
 

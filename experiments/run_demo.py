@@ -30,8 +30,12 @@ from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
 from cvmdx_jax import cli
 from cvmdx_jax.config.mdn import MDNRunConfig
-from cvmdx_jax.config.runs import (BaselineRunConfig, DiffusionRunConfig, DistillRunConfig,
-                                   TokenizerRunConfig)
+from cvmdx_jax.config.runs import (
+    BaselineRunConfig,
+    DiffusionRunConfig,
+    DistillRunConfig,
+    TokenizerRunConfig,
+)
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data import sumo_plan
 from cvmdx_jax.evaluation import animation, report
@@ -49,21 +53,34 @@ _TOKENIZER = flags.DEFINE_string("tokenizer_preset", "demo", "configs/tokenizer.
 _DIFFUSION = flags.DEFINE_string("diffusion_preset", "demo", "configs/diffusion.py preset.")
 _DISTILL = flags.DEFINE_string("distill_preset", "demo", "configs/distill.py preset.")
 _DISTILL_STEPS = flags.DEFINE_list(
-    "distill_steps", [str(s) for s in distill_config.STUDENTS],
+    "distill_steps",
+    [str(s) for s in distill_config.STUDENTS],
     "Students, one run each: a progressive student for the first count of steps taught "
     "by the guided denoiser (guided_progressive), then progressive students, each for "
-    "half its teacher's steps; empty: the report samples the guided denoiser.")
+    "half its teacher's steps; empty: the report samples the guided denoiser.",
+)
 _BASELINE = flags.DEFINE_string("baseline_preset", "demo", "configs/baseline.py preset.")
 _MDN = flags.DEFINE_string("mdn_preset", "demo", "configs/mdn.py preset.")
-_SEED = flags.DEFINE_integer("seed", 0, "Training seed of the tokeniser, denoiser, students "
-                             "and baseline (`config.seed` of each; the data stay the same).",
-                             lower_bound=0)
-_DDPM = flags.DEFINE_integer("ddpm_scenarios", 30, "Scenarios of the single-DDPM baseline "
-                             "on test (1,000 guided steps: ~20 s for 30 on 2 cores).",
-                             lower_bound=0)
-_OOD_DDPM = flags.DEFINE_integer("ood_ddpm_scenarios", 0, "Scenarios of the single-DDPM "
-                                 "baseline on test_ood (0 = none: the demo's time budget).",
-                                 lower_bound=0)
+_SEED = flags.DEFINE_integer(
+    "seed",
+    0,
+    "Training seed of the tokeniser, denoiser, students "
+    "and baseline (`config.seed` of each; the data stay the same).",
+    lower_bound=0,
+)
+_DDPM = flags.DEFINE_integer(
+    "ddpm_scenarios",
+    30,
+    "Scenarios of the single-DDPM baseline "
+    "on test (1,000 guided steps: ~20 s for 30 on 2 cores).",
+    lower_bound=0,
+)
+_OOD_DDPM = flags.DEFINE_integer(
+    "ood_ddpm_scenarios",
+    0,
+    "Scenarios of the single-DDPM " "baseline on test_ood (0 = none: the demo's time budget).",
+    lower_bound=0,
+)
 cli.output_dirs("workdir")
 cli.presets("data_preset", dataset_config.get_config)
 cli.presets("tokenizer_preset", tokenizer_config.get_config)
@@ -73,16 +90,20 @@ cli.presets("baseline_preset", baseline_config.get_config)
 cli.presets("mdn_preset", mdn_config.get_config)
 cli.int_list("distill_steps", 1)
 flags.register_validator(
-    "distill_steps", lambda v: all(int(b) * 2 == int(a) for a, b in zip(v, v[1:])),
-    "each progressive student takes half its teacher's steps (e.g. 4,2,1)")
+    "distill_steps",
+    lambda v: all(int(b) * 2 == int(a) for a, b in zip(v, v[1:])),
+    "each progressive student takes half its teacher's steps (e.g. 4,2,1)",
+)
 
 
 def _stage(name: str, start: float) -> None:
   """Prints the memory so far (`memory.rss_line`: the peak is the process's, through the stage
   before), hands what the process only kept for reuse back (`memory.release`), then names
   the next stage."""
-  print(f"    memory: {memory.rss_line()}; released ({memory.release()}): "
-        f"{memory.rss_line()}", flush=True)
+  print(
+      f"    memory: {memory.rss_line()}; released ({memory.release()}): " f"{memory.rss_line()}",
+      flush=True,
+  )
   print(f"\n=== {name}  (t = {time.perf_counter() - start:.0f} s)", flush=True)
 
 
@@ -113,8 +134,7 @@ def main(argv):
   for i, steps in enumerate(_DISTILL_STEPS.value):
     student = root / f"student_progressive_{steps}"
     kind = "progressive" if i else "guided progressive"
-    _stage(f"3b/5 {kind} distillation, {steps} steps (preset {_DISTILL.value}) -> {student}",
-           start)
+    _stage(f"3b/5 {kind} distillation, {steps} steps (preset {_DISTILL.value}) -> {student}", start)
     dist_cfg = distill_config.get_config(_DISTILL.value)
     dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
     dist_cfg.guided_progressive, dist_cfg.seed = i == 0, _SEED.value
@@ -137,12 +157,17 @@ def main(argv):
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
-  for split in report.run_test_and_ood(tokenizer_dir=tok_dir, diffusion_dir=teacher,
-                                       data_dir=data_dir, workdir=root,
-                                       ddpm_scenarios=_DDPM.value,
-                                       ood_ddpm_scenarios=_OOD_DDPM.value,
-                                       baseline_dir=base_dir, mdn_dir=mdn_dir,
-                                       ddpm_diffusion_dir=diff_dir):
+  for split in report.run_test_and_ood(
+      tokenizer_dir=tok_dir,
+      diffusion_dir=teacher,
+      data_dir=data_dir,
+      workdir=root,
+      ddpm_scenarios=_DDPM.value,
+      ood_ddpm_scenarios=_OOD_DDPM.value,
+      baseline_dir=base_dir,
+      mdn_dir=mdn_dir,
+      ddpm_diffusion_dir=diff_dir,
+  ):
     suffix = report.split_suffix(split)
     files += [f"{root}/metrics{suffix}.json", f"{root}/results{suffix}.md"]
     print(f"\n{split}:\n" + (root / f"results{suffix}.md").read_text())
@@ -150,11 +175,15 @@ def main(argv):
   held_out = sumo_plan.split_ids(data_cfg.sumo)["test_ood"] if data_cfg.source == "sumo" else []
   if held_out:  # the scene, moving: 3 s of the held-out road with every vehicle's hypotheses
     clip = root / "scene_test_ood.gif"
-    animation.write_clip(Predictor.load(tok_dir, teacher), data_dir / "recordings",
-                         held_out[0], clip)
+    animation.write_clip(
+        Predictor.load(tok_dir, teacher), data_dir / "recordings", held_out[0], clip
+    )
     files.append(str(clip))
-  print(f"done in {time.perf_counter() - start:.0f} s, {memory.rss_line()}; reports: "
-        f"{', '.join(files)}, {root}/*.png", flush=True)
+  print(
+      f"done in {time.perf_counter() - start:.0f} s, {memory.rss_line()}; reports: "
+      f"{', '.join(files)}, {root}/*.png",
+      flush=True,
+  )
 
 
 if __name__ == "__main__":

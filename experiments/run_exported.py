@@ -80,8 +80,9 @@ def main(argv=None) -> None:
   entry = manifest["predict"]
   exported = jax.export.deserialize(read_verified(args.export_dir, entry["file"]))
   inputs = load_inputs(args.inputs, entry["inputs"])
-  call_args = [np.uint32(args.seed) if s["name"] == "seed" else inputs[s["name"]]
-               for s in entry["inputs"]]
+  call_args = [
+      np.uint32(args.seed) if s["name"] == "seed" else inputs[s["name"]] for s in entry["inputs"]
+  ]
   outputs = jax.device_get(exported.call(*call_args))
   tmp = args.out.with_name(f".{args.out.name}.tmp")  # renamed when whole: never half-written
   with open(tmp, "wb") as f:

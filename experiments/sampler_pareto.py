@@ -11,7 +11,8 @@ Every setting samples the same class-balanced scenarios with the same seed, the 
 guidance (paper mode), number of samples and hypothesis method. U-Net evaluations per
 sample = 2 S for the guided pair (conditional and unconditional branch per step), S for a
 student (w is its input); a student runs the distilled sampler at its own steps (a
-guidance student also at --guidance_student_steps). The chosen default is the setting with the fewest
+guidance student also at --guidance_student_steps). The chosen default is the setting with the
+fewest
 evaluations whose --criteria (default: mean ADE / FDE and best-of-K ADE / FDE) are all
 within --tolerance of the reference's (the paper's DDIM-10): with mean ADE alone, a
 2-step solver wins while its samples collapse (best-of-K 3 % worse; BUILD_NOTES.md).
@@ -22,45 +23,63 @@ import dataclasses
 import json
 from pathlib import Path
 
-from absl import flags
 import jax.numpy as jnp
 import numpy as np
+from absl import flags
 
 from cvmdx_jax import cli
+from cvmdx_jax.data import dataset
+from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.storage import atomic
-from cvmdx_jax.data import dataset, scenarios as scenarios_lib
 from cvmdx_jax.evaluation import scoring
 from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.storage import atomic
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
 _DIFFUSION = flags.DEFINE_string("diffusion_dir", None, "Diffusion run directory.")
 _DATA = flags.DEFINE_string("data_dir", None, "Dataset directory.")
 _OUT = flags.DEFINE_string("out_dir", None, "Where pareto.md and pareto.json go.")
 _SPLIT = flags.DEFINE_string("split", "val", "Split to evaluate (choose on val).")
-_NUM = flags.DEFINE_integer("num_scenarios", 300, "Class-balanced subset size (0 = all).",
-                            lower_bound=0)
+_NUM = flags.DEFINE_integer(
+    "num_scenarios", 300, "Class-balanced subset size (0 = all).", lower_bound=0
+)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling and subset seed.")
 _DDIM = flags.DEFINE_list("ddim_steps", ["1", "2", "3", "5", "10", "20"], "DDIM step counts.")
-_DPM = flags.DEFINE_list("dpmpp2m_steps", ["2", "3", "4", "5", "6", "8", "10"],
-                         "DPM-Solver++(2M) step counts.")
-_TOL = flags.DEFINE_float("tolerance", 0.02, "Allowed relative loss vs the reference.",
-                          lower_bound=0.0)
-_CRITERIA = flags.DEFINE_list("criteria", ["mean_ade", "mean_fde", "min_ade_k", "min_fde_k"],
-                              "Errors that must stay within --tolerance of the reference's.")
-_DISTILLED = flags.DEFINE_list("distilled_dirs", [], "Distilled student run directories "
-                                "(experiments/distill.py) of --diffusion_dir.")
-_STUDENT_STEPS = flags.DEFINE_list("guidance_student_steps", ["1", "2", "4"],
-                                   "Distilled-sampler steps of a guidance student (a "
-                                   "progressive student runs at its own steps).")
-_FROM_JSON = flags.DEFINE_string("from_json", None, "Re-tabulate the rows of this pareto.json "
-                                 "(no sampling; the run flags only name the output).")
+_DPM = flags.DEFINE_list(
+    "dpmpp2m_steps", ["2", "3", "4", "5", "6", "8", "10"], "DPM-Solver++(2M) step counts."
+)
+_TOL = flags.DEFINE_float(
+    "tolerance", 0.02, "Allowed relative loss vs the reference.", lower_bound=0.0
+)
+_CRITERIA = flags.DEFINE_list(
+    "criteria",
+    ["mean_ade", "mean_fde", "min_ade_k", "min_fde_k"],
+    "Errors that must stay within --tolerance of the reference's.",
+)
+_DISTILLED = flags.DEFINE_list(
+    "distilled_dirs",
+    [],
+    "Distilled student run directories " "(experiments/distill.py) of --diffusion_dir.",
+)
+_STUDENT_STEPS = flags.DEFINE_list(
+    "guidance_student_steps",
+    ["1", "2", "4"],
+    "Distilled-sampler steps of a guidance student (a "
+    "progressive student runs at its own steps).",
+)
+_FROM_JSON = flags.DEFINE_string(
+    "from_json",
+    None,
+    "Re-tabulate the rows of this pareto.json "
+    "(no sampling; the run flags only name the output).",
+)
 REFERENCE = ("ddim", 10)  # the paper's sampler
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score")
 
 
-def choose_default(rows: list[dict], tolerance: float, criteria=("mean_ade",),
-                   reference=REFERENCE) -> dict:
+def choose_default(
+    rows: list[dict], tolerance: float, criteria=("mean_ade",), reference=REFERENCE
+) -> dict:
   """The row with the fewest evaluations per sample (then the lowest mean ADE) whose
   errors in `criteria` are each <= (1 + tolerance) x the reference row's.
 
@@ -74,43 +93,66 @@ def choose_default(rows: list[dict], tolerance: float, criteria=("mean_ade",),
   return min(filter(ok, rows), key=lambda r: (r["evaluations"], r["mean_ade"]))
 
 
-def markdown(rows: list[dict], choice: dict, tolerance: float, note: str,
-             criteria=("mean_ade",)) -> str:
+def markdown(
+    rows: list[dict], choice: dict, tolerance: float, note: str, criteria=("mean_ade",)
+) -> str:
   """The Pareto table, one row per setting, the chosen one marked."""
-  lines = [f"Sampler Pareto: {note}", "",
-           "| sampler | S | U-Net evals / sample | mean ADE | mean FDE | minADE_K | minFDE_K "
-           "| Brier-minFDE | energy score |", "|---|---|---|---|---|---|---|---|---|"]
+  lines = [
+      f"Sampler Pareto: {note}",
+      "",
+      "| sampler | S | U-Net evals / sample | mean ADE | mean FDE | minADE_K | minFDE_K "
+      "| Brier-minFDE | energy score |",
+      "|---|---|---|---|---|---|---|---|---|",
+  ]
   for r in sorted(rows, key=lambda r: (r["evaluations"], r["sampler"])):
     mark = " **(default)**" if r is choice else ""
     run = f" ({r['run']})" if r.get("run") else ""
-    lines.append(f"| {r['sampler']}{run}{mark} | {r['steps']} | {r['evaluations']} | "
-                 + " | ".join(f"{r[c]:.3f}" if c in r else "-" for c in COLUMNS) + " |")
-  lines += ["", f"Default: {choice['sampler']} S = {choice['steps']}, the fewest evaluations "
-            f"with {', '.join(criteria)} within {100 * tolerance:g} % of "
-            f"{REFERENCE[0]}-{REFERENCE[1]} (chosen on val)."]
+    lines.append(
+        f"| {r['sampler']}{run}{mark} | {r['steps']} | {r['evaluations']} | "
+        + " | ".join(f"{r[c]:.3f}" if c in r else "-" for c in COLUMNS)
+        + " |"
+    )
+  lines += [
+      "",
+      f"Default: {choice['sampler']} S = {choice['steps']}, the fewest evaluations "
+      f"with {', '.join(criteria)} within {100 * tolerance:g} % of "
+      f"{REFERENCE[0]}-{REFERENCE[1]} (chosen on val).",
+  ]
   return "\n".join(lines) + "\n"
 
 
-def evaluate(predictor: Predictor, data, sampler: str, steps: int, seed: int,
-             run: str = "") -> dict:
+def evaluate(
+    predictor: Predictor, data, sampler: str, steps: int, seed: int, run: str = ""
+) -> dict:
   """Mean errors (m) of one sampler setting on `data` (time: experiments/benchmark.py)."""
-  p = dataclasses.replace(predictor, sampling=dataclasses.replace(
-      predictor.sampling, sampler=sampler, steps=steps, mode="paper"))
+  p = dataclasses.replace(
+      predictor,
+      sampling=dataclasses.replace(predictor.sampling, sampler=sampler, steps=steps, mode="paper"),
+  )
   out = p(data, seed=seed)
   errors = scoring.cvmdx_errors(out, jnp.asarray(data.future), data.label)
   mean, best = errors["cvmdx_mean"], errors["cvmdx_best_of_k"]
-  means = {"mean_ade": mean["ade"], "mean_fde": mean["fde"], "min_ade_k": best["ade"],
-           "min_fde_k": best["fde"], "brier_min_fde": best["brier_min_fde"],
-           "energy_score": mean["energy_score"]}
+  means = {
+      "mean_ade": mean["ade"],
+      "mean_fde": mean["fde"],
+      "min_ade_k": best["ade"],
+      "min_fde_k": best["fde"],
+      "brier_min_fde": best["brier_min_fde"],
+      "energy_score": mean["energy_score"],
+  }
   per_step = 1 if predictor.denoiser.config.diffusion.guidance_input else 2
-  return {"sampler": sampler, "steps": steps, "evaluations": per_step * steps, "run": run,
-          **{k: float(np.mean(v)) for k, v in means.items()}}
+  return {
+      "sampler": sampler,
+      "steps": steps,
+      "evaluations": per_step * steps,
+      "run": run,
+      **{k: float(np.mean(v)) for k, v in means.items()},
+  }
 
 
 def sample_rows() -> tuple[list[dict], str]:
   """Evaluates every --ddim_steps / --dpmpp2m_steps setting: (rows, a note on the data)."""
-  settings = ([("ddim", int(s)) for s in _DDIM.value]
-              + [("dpmpp2m", int(s)) for s in _DPM.value])
+  settings = [("ddim", int(s)) for s in _DDIM.value] + [("dpmpp2m", int(s)) for s in _DPM.value]
   if REFERENCE not in settings:
     raise UserError(f"--ddim_steps must include {REFERENCE[1]} (the reference setting)")
   data = dataset.load_split(_DATA.value, _SPLIT.value)
@@ -119,17 +161,23 @@ def sample_rows() -> tuple[list[dict], str]:
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   runs = [(predictor, sampler, steps, "") for sampler, steps in settings]
   for path in _DISTILLED.value:
-    student = dataclasses.replace(Predictor.load(_TOKENIZER.value, path),
-                                  sampling=predictor.sampling)
-    steps = ((student.denoiser.config.sampling.steps,) if student.denoiser.progressive
-             else _STUDENT_STEPS.value)
+    student = dataclasses.replace(
+        Predictor.load(_TOKENIZER.value, path), sampling=predictor.sampling
+    )
+    steps = (
+        (student.denoiser.config.sampling.steps,)
+        if student.denoiser.progressive
+        else _STUDENT_STEPS.value
+    )
     runs += [(student, "distilled", int(s), Path(path).name) for s in steps]
   rows = []
   for p, sampler, steps, run in runs:
     rows.append(evaluate(p, data, sampler, steps, _SEED.value, run))
     print(rows[-1], flush=True)
-  note = (f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} class-balanced scenarios, "
-          f"seed {_SEED.value}, {predictor.sampling.num_samples} samples")
+  note = (
+      f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} class-balanced scenarios, "
+      f"seed {_SEED.value}, {predictor.sampling.num_samples} samples"
+  )
   return rows, note
 
 
@@ -153,9 +201,16 @@ def main(argv):
   table = markdown(rows, choice, _TOL.value, note, _CRITERIA.value)
   out = Path(_OUT.value)
   out.mkdir(parents=True, exist_ok=True)
-  atomic.write_json(out / "pareto.json", {"note": note, "tolerance": _TOL.value,
-                                          "criteria": _CRITERIA.value, "rows": rows,
-                                          "default": choice})
+  atomic.write_json(
+      out / "pareto.json",
+      {
+          "note": note,
+          "tolerance": _TOL.value,
+          "criteria": _CRITERIA.value,
+          "rows": rows,
+          "default": choice,
+      },
+  )
   atomic.write_text(out / "pareto.md", table)
   print(table)
 

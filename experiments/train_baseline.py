@@ -6,16 +6,15 @@ Rerunning the same command resumes from the last complete checkpoint. Evaluate i
 cVMDx with `experiments/evaluate.py --baseline_dir=...`.
 """
 
-from absl import app, flags, logging
 import jax
+from absl import app, flags, logging
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
 from cvmdx_jax.config.runs import BaselineRunConfig
 from cvmdx_jax.train import baseline
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Baseline config file.",
-                                          lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Baseline config file.", lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")

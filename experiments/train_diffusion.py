@@ -5,16 +5,17 @@
 Rerunning the same command resumes from the last complete checkpoint.
 """
 
-from absl import app, flags, logging
 import jax
+from absl import app, flags, logging
 from ml_collections import config_flags
 
 from cvmdx_jax import cli, sharding
 from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.train import diffusion
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Diffusion config file.",
-                                          lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Diffusion config file.", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")

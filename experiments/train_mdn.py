@@ -15,8 +15,9 @@ from cvmdx_jax import cli, sharding
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.train import mdn
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Mixture density baseline config "
-                                          "file.", lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Mixture density baseline config " "file.", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")

@@ -6,17 +6,17 @@ Rerunning the same command resumes from the latest checkpoint in --workdir. The 
 does the work (cvmdx_jax.train.tokenizer); this file only parses flags.
 """
 
+import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
-
-import jax
 
 from cvmdx_jax import cli, sharding
 from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer
 
 _CONFIG = config_flags.DEFINE_config_file(
-    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:tiny.", lock_config=True)
+    "config", None, "Tokeniser config file, e.g. configs/tokenizer.py:tiny.", lock_config=True
+)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Run directory (checkpoints, metrics, tokens).")
 flags.mark_flags_as_required(["config", "workdir"])
 cli.output_dirs("workdir")

@@ -11,8 +11,9 @@ import pytest
 # same tiny models many times, in this process, in the xdist workers and in the entry points
 # they start): JAX's persistent compilation cache. A user's setting wins;
 # set before JAX is imported.
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
-                      str(Path(tempfile.gettempdir()) / f"cvmdx_jax_tests_{os.getuid()}"))
+os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"cvmdx_jax_tests_{os.getuid()}")
+)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 from cvmdx_jax import host_allocator  # noqa: E402
@@ -40,6 +41,7 @@ def float32_arithmetic():
   keeps that default for its networks (`constants.EXACT_MATMUL`); tests of the networks'
   arithmetic against float32 tolerances ask for this. No effect on a CPU."""
   import jax  # here: the environment above is set before JAX is imported
+
   with jax.default_matmul_precision("float32"):
     yield
 
@@ -60,6 +62,7 @@ def scenarios_factory():
   """`make_scenarios(m, seed=0)` of tests/models/tokenizer_data.py: toy scenarios of three
   maneuver classes for the tokeniser's model and trainer tests."""
   from tests.models import tokenizer_data
+
   return tokenizer_data.make_scenarios
 
 
@@ -69,6 +72,7 @@ def tiny_runs(tmp_path_factory, request, eclipse_sumo) -> Path:
   once per session; under xdist once for all workers (in the run's shared temp directory).
   Read-only: tests write into their own `tmp_path`."""
   from tests import fixtures_runs
+
   shared = hasattr(request.config, "workerinput")  # an xdist worker
   base = tmp_path_factory.getbasetemp()
   return fixtures_runs.build((base.parent if shared else base) / "tiny_runs")

@@ -48,7 +48,6 @@ def build(root: Path) -> Path:
     if not (root / DONE).exists():
       dataset.build(dataset_config.get_config("tiny"), root / "data")
       train_tokenizer(tokenizer_config_for(root / "data"), root / "tokenizer")
-      train_diffusion(diffusion_config_for(root / "data", root / "tokenizer"),
-                      root / "diffusion")
+      train_diffusion(diffusion_config_for(root / "data", root / "tokenizer"), root / "diffusion")
       (root / DONE).touch()
   return root

@@ -58,10 +58,16 @@ LONG = "n" * 300  # a path component longer than any file system allows (ENAMETO
 CASES = [
     ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --nosuch=1", "'nosuch'"),
     ("ablate_codebook", "--data_dir={T}/nosuch --workdir={NEW}", "--data_dir="),
-    ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --max_scenarios=-1",
-     "--max_scenarios=-1"),
-    ("ablate_codebook", "--data_dir={T}/empty --workdir={NEW} --diffusion_preset=nosuch",
-     "--diffusion_preset=nosuch"),
+    (
+        "ablate_codebook",
+        "--data_dir={T}/empty --workdir={NEW} --max_scenarios=-1",
+        "--max_scenarios=-1",
+    ),
+    (
+        "ablate_codebook",
+        "--data_dir={T}/empty --workdir={NEW} --diffusion_preset=nosuch",
+        "--diffusion_preset=nosuch",
+    ),
     ("benchmark", "--nosuch=1", "'nosuch'"),
     ("benchmark", "--repeats=0", "--repeats=0"),
     ("benchmark", "--performance=fast", "--performance"),
@@ -71,24 +77,49 @@ CASES = [
     ("benchmark_quality", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("benchmark_stack", "--nosuch=1", "'nosuch'"),
     ("codebook_health", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("codebook_health", "--config=configs/tokenizer.py:nosuch --workdir={NEW}",
-     "--config=configs/tokenizer.py:nosuch"),
-    ("codebook_health", f"{TOK} --config.data_dir={{T}}/nosuch --workdir={{NEW}}",
-     "--config.data_dir="),
-    ("codebook_health", f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}} "
-     "--codebook_sizes=0", "--codebook_sizes="),
-    ("codebook_health", f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}}",
-     "empty/cache/metadata.json"),  # no dataset there
+    (
+        "codebook_health",
+        "--config=configs/tokenizer.py:nosuch --workdir={NEW}",
+        "--config=configs/tokenizer.py:nosuch",
+    ),
+    (
+        "codebook_health",
+        f"{TOK} --config.data_dir={{T}}/nosuch --workdir={{NEW}}",
+        "--config.data_dir=",
+    ),
+    (
+        "codebook_health",
+        f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}} " "--codebook_sizes=0",
+        "--codebook_sizes=",
+    ),
+    (
+        "codebook_health",
+        f"{TOK} --config.data_dir={{T}}/empty --workdir={{NEW}}",
+        "empty/cache/metadata.json",
+    ),  # no dataset there
     ("distill", f"{DIST} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/nosuch",
-     "--config.teacher_dir="),
-    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty "
-     "--config.steps=0", "--config.steps=0"),
-    ("distill", f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty",
-     "empty/config.json"),  # not a run directory
+    (
+        "distill",
+        f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/nosuch",
+        "--config.teacher_dir=",
+    ),
+    (
+        "distill",
+        f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty " "--config.steps=0",
+        "--config.steps=0",
+    ),
+    (
+        "distill",
+        f"{DIST} --workdir={{NEW}} --config.teacher_dir={{T}}/empty",
+        "empty/config.json",
+    ),  # not a run directory
     ("evaluate", f"{EVAL} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("evaluate", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
-     "--data_dir={T}/empty --workdir={NEW}", "--tokenizer_dir="),
+    (
+        "evaluate",
+        "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
+        "--data_dir={T}/empty --workdir={NEW}",
+        "--tokenizer_dir=",
+    ),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --max_scenarios=-5", "--max_scenarios=-5"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --seed=4294967296", "--seed=4294967296"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --sampler=euler", "--sampler=euler"),
@@ -99,102 +130,192 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{T}}/file/sub", "--workdir="),  # not writable
     ("evaluate", f"{EVAL} --workdir={{NEW}} --baseline_dir={{T}}/nosuch", "--baseline_dir="),
     ("evaluate", f"{EVAL} --workdir={{T}}/{LONG}/sub", "File name too long"),
-    ("evaluate", f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
-     "--data_dir={T}/empty --workdir={NEW}", "File name too long"),
-    ("export", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty --out={NEW}",
-     "--tokenizer_dir="),
+    (
+        "evaluate",
+        f"--tokenizer_dir={{T}}/{LONG} --diffusion_dir={{T}}/empty "
+        "--data_dir={T}/empty --workdir={NEW}",
+        "File name too long",
+    ),
+    (
+        "export",
+        "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty --out={NEW}",
+        "--tokenizer_dir=",
+    ),
     ("hypothesis_sweep", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("hypothesis_sweep", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
     ("hypothesis_sweep", f"{EVAL} --out_dir={{NEW}} --tolerance=-0.1", "--tolerance=-0.1"),
     ("hypothesis_sweep", "--out_dir={NEW} --num_samples=9,1000000", "--num_samples="),
     ("import_official", "--checkpoint={T}/file --workdir={NEW} --nosuch=1", "'nosuch'"),
-    ("import_official", "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
-     "--tokenizer_dir="),
+    (
+        "import_official",
+        "--checkpoint={T}/file --workdir={NEW} --tokenizer_dir={T}/nosuch",
+        "--tokenizer_dir=",
+    ),
     ("import_official", "--checkpoint={T}/nosuch.pt --workdir={NEW}", "--checkpoint="),
-    ("import_official", "--checkpoint={T}/file --workdir={NEW} --num_heads=0",
-     "--num_heads=0"),
+    ("import_official", "--checkpoint={T}/file --workdir={NEW} --num_heads=0", "--num_heads=0"),
     ("make_dataset", f"{DATA} --data_dir={{NEW}} --nosuch=1", "'nosuch'"),
     ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.nosuch=1", "--config.nosuch"),
-    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.sumo.workers=two",
-     "--config.sumo.workers=two"),  # wrong type
-    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.sumo.duration_s=-60",
-     "--config.sumo.duration_s=-60"),
-    ("make_dataset", f"{DATA} --data_dir={{NEW}} --config.source=highd "
-     "--config.highd_dir={T}/nosuch", "--config.highd_dir="),
+    (
+        "make_dataset",
+        f"{DATA} --data_dir={{NEW}} --config.sumo.workers=two",
+        "--config.sumo.workers=two",
+    ),  # wrong type
+    (
+        "make_dataset",
+        f"{DATA} --data_dir={{NEW}} --config.sumo.duration_s=-60",
+        "--config.sumo.duration_s=-60",
+    ),
+    (
+        "make_dataset",
+        f"{DATA} --data_dir={{NEW}} --config.source=highd " "--config.highd_dir={T}/nosuch",
+        "--config.highd_dir=",
+    ),
     ("make_dataset", f"{DATA} --data_dir={{T}}/locked", "pid"),  # WorkdirLockedError
-    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
-     "--recording={T}/file --out={NEW}/p.csv.gz --nosuch=1", "'nosuch'"),
-    ("predict_recording", "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
-     "--recording={T}/file --out={NEW}/p.csv.gz", "--tokenizer_dir="),
-    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
-     "--recording={T}/file --out={NEW}/p.csv.gz", "NN_tracks.csv"),
-    ("predict_recording", "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
-     "--recording={T}/file --out={NEW}/p.csv.gz --every=0", "--every=0"),
+    (
+        "predict_recording",
+        "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+        "--recording={T}/file --out={NEW}/p.csv.gz --nosuch=1",
+        "'nosuch'",
+    ),
+    (
+        "predict_recording",
+        "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty "
+        "--recording={T}/file --out={NEW}/p.csv.gz",
+        "--tokenizer_dir=",
+    ),
+    (
+        "predict_recording",
+        "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+        "--recording={T}/file --out={NEW}/p.csv.gz",
+        "NN_tracks.csv",
+    ),
+    (
+        "predict_recording",
+        "--tokenizer_dir={T}/empty --diffusion_dir={T}/empty "
+        "--recording={T}/file --out={NEW}/p.csv.gz --every=0",
+        "--every=0",
+    ),
     ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
     ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
     ("sampler_pareto", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("sampler_pareto", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
-    ("run_exported", "--export_dir={T}/nosuch --inputs={T}/file --out={NEW}/o.npz",
-     "nosuch/manifest.json"),
+    (
+        "run_exported",
+        "--export_dir={T}/nosuch --inputs={T}/file --out={NEW}/o.npz",
+        "nosuch/manifest.json",
+    ),
     ("run_demo", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("run_demo", "--workdir={NEW} --data_preset=nosuch", "--data_preset=nosuch"),
     ("run_demo", "--workdir={NEW} --ddpm_scenarios=-1", "--ddpm_scenarios=-1"),
     ("run_demo", "--workdir={NEW} --seed=-1", "--seed=-1"),
     ("run_demo", "--workdir={NEW} --ood_ddpm_scenarios=-1", "--ood_ddpm_scenarios=-1"),
     ("train_baseline", f"{BASE} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("train_baseline", "--config=configs/baseline.py:nosuch --workdir={NEW}",
-     "--config=configs/baseline.py:nosuch"),
-    ("train_baseline", f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.train.end_lr_fraction=2",
-     "--config.train.end_lr_fraction=2"),
-    ("train_baseline", f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.train.select_metric=accuracy",
-     "train.select_metric"),
-    ("train_mdn", f"{MDN} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.model.std_floor_m=0",
-     "--config.model.std_floor_m=0"),
+    (
+        "train_baseline",
+        "--config=configs/baseline.py:nosuch --workdir={NEW}",
+        "--config=configs/baseline.py:nosuch",
+    ),
+    (
+        "train_baseline",
+        f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.train.end_lr_fraction=2",
+        "--config.train.end_lr_fraction=2",
+    ),
+    (
+        "train_baseline",
+        f"{BASE} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.train.select_metric=accuracy",
+        "train.select_metric",
+    ),
+    (
+        "train_mdn",
+        f"{MDN} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.model.std_floor_m=0",
+        "--config.model.std_floor_m=0",
+    ),
     ("train_mdn", f"{MDN} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     ("train_diffusion", f"{DIFF} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("train_diffusion", "--config=configs/diffusion.py:nosuch --workdir={NEW}",
-     "--config=configs/diffusion.py:nosuch"),
-    ("train_diffusion", "--config=configs/nosuch.py --workdir={NEW}",
-     "--config=configs/nosuch.py"),
-    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.train.nosuch=1",
-     "--config.train.nosuch"),
-    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
-     "--config.data_dir="),
-    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.train.num_epochs=-3",
-     "--config.train.num_epochs=-3"),
-    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.sampling.guidance.w_min=nan",
-     "--config.sampling.guidance.w_min=nan"),
-    ("train_diffusion", f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.tokenizer_dir={T}/empty --config.diffusion.control_scale=fast",
-     "--config.diffusion.control_scale="),
+    (
+        "train_diffusion",
+        "--config=configs/diffusion.py:nosuch --workdir={NEW}",
+        "--config=configs/diffusion.py:nosuch",
+    ),
+    ("train_diffusion", "--config=configs/nosuch.py --workdir={NEW}", "--config=configs/nosuch.py"),
+    (
+        "train_diffusion",
+        f"{DIFF} --workdir={{NEW}} --config.train.nosuch=1",
+        "--config.train.nosuch",
+    ),
+    (
+        "train_diffusion",
+        f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
+        "--config.data_dir=",
+    ),
+    (
+        "train_diffusion",
+        f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.train.num_epochs=-3",
+        "--config.train.num_epochs=-3",
+    ),
+    (
+        "train_diffusion",
+        f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.sampling.guidance.w_min=nan",
+        "--config.sampling.guidance.w_min=nan",
+    ),
+    (
+        "train_diffusion",
+        f"{DIFF} --workdir={{NEW}} --config.data_dir={{T}}/empty "
+        "--config.tokenizer_dir={T}/empty --config.diffusion.control_scale=fast",
+        "--config.diffusion.control_scale=",
+    ),
     ("train_tokenizer", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
-    ("train_tokenizer", "--config=configs/tokenizer.py:q=sixty --workdir={NEW}",
-     "--config=configs/tokenizer.py:q=sixty"),
-    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
-     "--config.data_dir="),
-    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/{LONG}",
-     "File name too long"),
-    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty "
-     "--config.train.batch_size=0", "--config.train.batch_size=0"),
+    (
+        "train_tokenizer",
+        "--config=configs/tokenizer.py:q=sixty --workdir={NEW}",
+        "--config=configs/tokenizer.py:q=sixty",
+    ),
+    (
+        "train_tokenizer",
+        f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/nosuch",
+        "--config.data_dir=",
+    ),
+    (
+        "train_tokenizer",
+        f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/{LONG}",
+        "File name too long",
+    ),
+    (
+        "train_tokenizer",
+        f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty " "--config.train.batch_size=0",
+        "--config.train.batch_size=0",
+    ),
     ("train_tokenizer", "--workdir={NEW}", "--config"),  # required flag missing
-    ("train_tokenizer", f"{TOK} --workdir={{T}}/locked --config.data_dir={{T}}/empty",
-     "pid"),  # WorkdirLockedError
-    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty stray",
-     "stray"),
+    (
+        "train_tokenizer",
+        f"{TOK} --workdir={{T}}/locked --config.data_dir={{T}}/empty",
+        "pid",
+    ),  # WorkdirLockedError
+    ("train_tokenizer", f"{TOK} --workdir={{NEW}} --config.data_dir={{T}}/empty stray", "stray"),
 ]
 
 
 # The default run: each script's first case and each kind of error once (about 2-3 s of
 # start-up a case); the other cases run in the slow target.
-KINDS = {"pid", "stray", "recordings/plans.json", "File name too long", "--config",
-         "--config.sumo.workers=two", "--config.sampling.guidance.w_min=nan", "--workdir=",
-         "empty/cache/metadata.json", "--config=configs/nosuch.py", "--baseline_dir="}
+KINDS = {
+    "pid",
+    "stray",
+    "recordings/plans.json",
+    "File name too long",
+    "--config",
+    "--config.sumo.workers=two",
+    "--config.sampling.guidance.w_min=nan",
+    "--workdir=",
+    "empty/cache/metadata.json",
+    "--config=configs/nosuch.py",
+    "--baseline_dir=",
+}
 
 
 def _params():
@@ -211,8 +332,14 @@ def test_user_error_is_one_line_exit_2(inputs, index):
   new = inputs / "new" / str(index)
   argv = args.format(T=inputs, NEW=new).split()
   env = environ(JAX_PLATFORMS="cpu")
-  proc = subprocess.run([sys.executable, f"experiments/{script}.py", *argv], cwd=REPO,
-                        env=env, capture_output=True, text=True, timeout=120)
+  proc = subprocess.run(
+      [sys.executable, f"experiments/{script}.py", *argv],
+      cwd=REPO,
+      env=env,
+      capture_output=True,
+      text=True,
+      timeout=120,
+  )
   lines = [line for line in proc.stderr.splitlines() if not _INFO.match(line)]
   assert proc.returncode == 2, proc.stderr
   assert "Traceback" not in proc.stderr
@@ -241,6 +368,7 @@ def _run(monkeypatch, main):
 def test_path_errors_exit_2_with_the_message(monkeypatch, capsys, error):
   def main(argv):
     raise error
+
   assert _run(monkeypatch, main) == 2
   assert capsys.readouterr().err == f"evaluate: error: {error}\n"
 
@@ -248,6 +376,7 @@ def test_path_errors_exit_2_with_the_message(monkeypatch, capsys, error):
 def test_value_error_of_our_code_is_a_user_error(monkeypatch, capsys):
   def main(argv):
     diffusion_config.get_config("nosuch")
+
   assert _run(monkeypatch, main) == 2
   assert capsys.readouterr().err.startswith("evaluate: error: config arg 'nosuch'")
 
@@ -261,9 +390,11 @@ def test_a_user_error_raised_anywhere_is_one_line(monkeypatch, capsys):
 
 def test_a_plain_value_error_of_our_code_keeps_its_traceback(monkeypatch, tmp_path):
   """A plain ValueError of the package is a bug (here a misuse of atomic.writing)."""
+
   def main(argv):
     with atomic.writing(tmp_path / "x", mode="a"):
       pass
+
   monkeypatch.setattr("sys.argv", ["prog"])
   with pytest.raises(ValueError, match="mode='a'") as info:
     cli.run(main)
@@ -288,6 +419,7 @@ def test_writable(tmp_path):
 def _raiser(error):
   def main(argv):
     raise error
+
   return main
 
 
@@ -295,28 +427,37 @@ _ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/run/metrics.json")
 # what orbax re-raises from tensorstore when a checkpoint write finds the disk full
 _TENSORSTORE_FULL = ValueError(
     'RESOURCE_EXHAUSTED: Failed writing: "/w/checkpoints/2.orbax-checkpoint-tmp/state/d/1a": '
-    "Failed to write 1792272 bytes to file 8: No space left on device [os_error_code='28']")
+    "Failed to write 1792272 bytes to file 8: No space left on device [os_error_code='28']"
+)
 
 
-@pytest.mark.parametrize("error, named", [
-    (_ENOSPC, "No space left on device: '/run/metrics.json'; free some space"),
-    (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), "/q"), "free some space"),
-    (OSError(errno.EROFS, os.strerror(errno.EROFS), "/ro/x"), "Read-only file system"),
-    (OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG), "/" + "n" * 300),
-     "File name too long"),
-    (_TENSORSTORE_FULL, "No space left on device [os_error_code='28']; free some space"),
-])
+@pytest.mark.parametrize(
+    "error, named",
+    [
+        (_ENOSPC, "No space left on device: '/run/metrics.json'; free some space"),
+        (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), "/q"), "free some space"),
+        (OSError(errno.EROFS, os.strerror(errno.EROFS), "/ro/x"), "Read-only file system"),
+        (
+            OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG), "/" + "n" * 300),
+            "File name too long",
+        ),
+        (_TENSORSTORE_FULL, "No space left on device [os_error_code='28']; free some space"),
+    ],
+)
 def test_failures_of_the_machine_exit_2_with_one_line(monkeypatch, capsys, error, named):
   assert _run(monkeypatch, _raiser(error)) == 2
   err = capsys.readouterr().err
   assert err.startswith("evaluate: error: ") and err.count("\n") == 1 and named in err
 
 
-@pytest.mark.parametrize("error", [
-    ValueError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 8 bytes"),
-    RuntimeError("NOT_FOUND: no such key [os_error_code='2']"),  # ENOENT: not the machine
-    OSError(errno.EIO, os.strerror(errno.EIO)),
-])
+@pytest.mark.parametrize(
+    "error",
+    [
+        ValueError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 8 bytes"),
+        RuntimeError("NOT_FOUND: no such key [os_error_code='2']"),  # ENOENT: not the machine
+        OSError(errno.EIO, os.strerror(errno.EIO)),
+    ],
+)
 def test_other_resource_and_os_errors_keep_their_traceback(monkeypatch, error):
   monkeypatch.setattr("sys.argv", ["prog"])
   with pytest.raises(type(error)):
@@ -336,13 +477,20 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
       "def main(argv):\n"
       "  print('ready', flush=True)\n"
       "  time.sleep(60)\n"
-      "cli.run(main)\n")
+      "cli.run(main)\n"
+  )
   env = environ(JAX_PLATFORMS="cpu")
   # SIGINT as in a terminal: a parent that ignores it (an xdist worker may) would pass the
   # ignore on to the child, which then never sees the signal.
-  proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+  proc = subprocess.Popen(
+      [sys.executable, str(script)],
+      cwd=REPO,
+      env=env,
+      stdout=subprocess.PIPE,
+      stderr=subprocess.PIPE,
+      text=True,
+      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+  )
   try:
     assert proc.stdout.readline() == "ready\n"
     proc.send_signal(signal.SIGINT)

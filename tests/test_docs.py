@@ -14,8 +14,11 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "cvmdx_jax"
-DOCUMENTS = ("README.md", "BUILD_NOTES.md", *sorted(
-    str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md")))
+DOCUMENTS = (
+    "README.md",
+    "BUILD_NOTES.md",
+    *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md")),
+)
 TOP_DIRS = ("cvmdx_jax", "experiments", "configs", "tests", "docs")
 _SPAN = re.compile(r"(`+)(.+?)\1", re.S)
 _FENCE = re.compile(r"^```[^\n]*\n(.*?)^```", re.S | re.M)
@@ -54,7 +57,7 @@ def _package_path(parts: list[str]) -> tuple[pathlib.Path | None, list[str]]:
     if (here / parts[i]).is_dir():
       here = here / parts[i]
     elif (here / f"{parts[i]}.py").is_file():
-      return here / f"{parts[i]}.py", parts[i + 1:]
+      return here / f"{parts[i]}.py", parts[i + 1 :]
     else:
       break
     i += 1
@@ -127,8 +130,11 @@ def presets(config_file: pathlib.Path) -> set[str]:
   """The keywords of `common.parse_arg(arg, ...)` in a configs/ file: its presets."""
   found = set()
   for node in ast.walk(ast.parse(config_file.read_text())):
-    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-        and node.func.attr == "parse_arg"):
+    if (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "parse_arg"
+    ):
       found.update(k.arg for k in node.keywords)
   return found
 
@@ -160,9 +166,13 @@ def script_flags(script: pathlib.Path) -> set[str]:
   argparse `add_argument("--name", ...)`)."""
   names = {"help", "helpfull", "helpshort"}
   for node in ast.walk(ast.parse(script.read_text())):
-    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+    if (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
         and (node.func.attr.startswith("DEFINE") or node.func.attr == "add_argument")
-        and node.args and isinstance(node.args[0], ast.Constant)):
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+    ):
       names.add(str(node.args[0].value).removeprefix("--"))
   return names
 
@@ -177,7 +187,7 @@ def flags_missing(text: str) -> list[str]:
     if script is None or not script.is_file():
       continue
     defined = script_flags(script)
-    for flag in _FLAG.findall(line[match.end():]):
+    for flag in _FLAG.findall(line[match.end() :]):
       name = flag.split(".")[0]
       if name not in defined:
         missing.append(f"{match.group(0)} --{flag}")
@@ -204,9 +214,13 @@ _MACHINE_PATH = re.compile(r"(?<![\w.<>-])/(tmp|work|home|root|Users)/")
 
 def test_no_document_names_a_machine_or_temporary_path():
   documents = [ROOT / d for d in DOCUMENTS] + sorted((ROOT / "docs").rglob("*.md"))
-  found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}" for p in dict.fromkeys(documents)
-           if p.is_file() for i, line in enumerate(p.read_text().splitlines(), 1)
-           if _MACHINE_PATH.search(line)]
+  found = [
+      f"{p.relative_to(ROOT)}:{i}: {line.strip()}"
+      for p in dict.fromkeys(documents)
+      if p.is_file()
+      for i, line in enumerate(p.read_text().splitlines(), 1)
+      if _MACHINE_PATH.search(line)
+  ]
   assert not found, "machine paths (write them repository-relative):\n" + "\n".join(found)
 
 
@@ -231,7 +245,8 @@ def test_the_checker_finds_what_is_missing_and_accepts_what_exists():
   assert flags_missing("python experiments/train_diffusion.py --workdir=w --config.x=1") == []
   assert flags_missing("experiments/evaluate.py --split=val  # mpirun --allow") == []
   assert flags_missing("experiments/evaluate.py --no_such_flag=1") == [
-      "experiments/evaluate.py --no_such_flag"]
+      "experiments/evaluate.py --no_such_flag"
+  ]
   assert code_texts("a `x.y` b\n```\nc d\n```\n") == ["c d\n", "x.y"]
   assert _MACHINE_PATH.search("see /tmp/x/run.log") and _MACHINE_PATH.search("(/work/a)")
   assert not _MACHINE_PATH.search("<scratch>/tmp/x docs/tmp/x ../shared/x")
@@ -247,8 +262,10 @@ def test_every_name_a_document_mentions_exists(document):
 
 def test_script_flags_reads_absl_and_argparse_definitions(tmp_path):
   script = tmp_path / "s.py"
-  script.write_text('flags.DEFINE_string("workdir", None, "")\n'
-                    'config_flags.DEFINE_config_file("config")\n'
-                    'parser.add_argument("--export_dir", required=True)\n')
+  script.write_text(
+      'flags.DEFINE_string("workdir", None, "")\n'
+      'config_flags.DEFINE_config_file("config")\n'
+      'parser.add_argument("--export_dir", required=True)\n'
+  )
   assert script_flags(script) >= {"workdir", "config", "export_dir", "help"}
   assert "required" not in script_flags(script)

@@ -45,7 +45,7 @@ def test_constant_speed_straight():
 def test_constant_acceleration():
   v0, a = 31.0, -1.5  # speed at t0, m/s^2
   speed = v0 + a * TAU
-  xi, mask = _scenario(v0 * TAU + 0.5 * a * TAU ** 2, np.zeros(T), speed, np.zeros(T))
+  xi, mask = _scenario(v0 * TAU + 0.5 * a * TAU**2, np.zeros(T), speed, np.zeros(T))
   raw = _raw(ego_motion.ego_features(xi, mask))
   np.testing.assert_allclose(raw[:3], [v0, a, a], atol=1e-4)
   np.testing.assert_allclose(raw[3:8], 0.0, atol=1e-5)
@@ -78,8 +78,9 @@ def test_neighbours_give_lane_offset_and_leader():
   # ego y = 0; lane centre = mean(0.3, 0.5); leader 42 m ahead, 2.5 m/s slower
   np.testing.assert_allclose(raw[8:13], [-0.4, 1.0, 1.0, 42.0, -2.5], atol=1e-5)
   following_row = 13 + 4 * [slot for slot, _ in ego_motion.NEIGHBOURS].index("following")
-  np.testing.assert_allclose(raw[following_row:following_row + 4], [1.0, -20.0, 1.0, 0.5],
-                             atol=1e-5)
+  np.testing.assert_allclose(
+      raw[following_row : following_row + 4], [1.0, -20.0, 1.0, 0.5], atol=1e-5
+  )
   mask[0, following, -1] = False  # one same-lane neighbour is enough
   np.testing.assert_allclose(_raw(ego_motion.ego_features(xi, mask))[8], -0.3, atol=1e-5)
 
@@ -87,8 +88,11 @@ def test_neighbours_give_lane_offset_and_leader():
 def test_side_neighbours_offsets_and_clip():
   xi, mask = _scenario(30.0 * TAU, np.zeros(T), np.full(T, 30.0), np.zeros(T))
   xi[0, 0, -1, 1] = 0.2  # the ego 0.2 m left of its origin at t0
-  placed = {"leftPreceding": [35.0, 3.9, 33.0, 0.1], "rightFollowing": [-400.0, -3.5, 29.0, 0.0],
-            "leftAlongside": [-1.0, 3.7, 30.5, 0.0]}
+  placed = {
+      "leftPreceding": [35.0, 3.9, 33.0, 0.1],
+      "rightFollowing": [-400.0, -3.5, 29.0, 0.0],
+      "leftAlongside": [-1.0, 3.7, 30.5, 0.0],
+  }
   for slot, state in placed.items():
     xi[0, constants.VEHICLE_SLOTS.index(slot), -1] = state
     mask[0, constants.VEHICLE_SLOTS.index(slot), -1] = True
@@ -104,7 +108,7 @@ def test_side_neighbours_offsets_and_clip():
 def test_short_history_uses_only_observed_steps():
   v0, a, first = 25.0, 0.8, 60  # ego observed from step 60 on only
   speed = v0 + a * TAU
-  xi, mask = _scenario(v0 * TAU + 0.5 * a * TAU ** 2, np.zeros(T), speed, np.zeros(T))
+  xi, mask = _scenario(v0 * TAU + 0.5 * a * TAU**2, np.zeros(T), speed, np.zeros(T))
   xi[0, 0, :first], mask[0, 0, :first] = 0.0, False
   raw = _raw(ego_motion.ego_features(xi, mask))
   np.testing.assert_allclose(raw[:3], [v0, a, a], atol=1e-4)
@@ -132,8 +136,7 @@ def test_residual_controls_closed_form():
 def test_conditioning_names():
   assert ego_motion.uses_film("ego_film") and not ego_motion.uses_residual("ego_film")
   assert ego_motion.uses_residual("ego_residual") and not ego_motion.uses_film("ego_residual")
-  assert ego_motion.uses_film("ego_film_residual") and ego_motion.uses_residual(
-      "ego_film_residual")
+  assert ego_motion.uses_film("ego_film_residual") and ego_motion.uses_residual("ego_film_residual")
   assert not ego_motion.uses_film("token") and not ego_motion.uses_residual("token")
   with pytest.raises(ValueError, match="diffusion.conditioning"):
     ego_motion.check_conditioning("film")

@@ -3,7 +3,6 @@ line and exits 143 after removing temporary directories and killing child proces
 SUMO simulations of make_dataset); SIGINT in a process running JAX exits 130 without a
 crash at interpreter exit; a config file that cannot be loaded is one line."""
 
-import os
 import signal
 import subprocess
 import sys
@@ -23,7 +22,8 @@ def _procs_with(marker: str) -> list[int]:
   for entry in Path("/proc").iterdir():
     try:
       if entry.name.isdigit() and marker in (entry / "cmdline").read_bytes().decode(
-          errors="replace"):
+          errors="replace"
+      ):
         found.append(int(entry.name))
     except OSError:  # ended meanwhile
       continue
@@ -32,9 +32,15 @@ def _procs_with(marker: str) -> list[int]:
 
 def _start(argv: list[str], tmp_path: Path, **env) -> subprocess.Popen:
   # SIGINT as in a terminal: a parent that ignores it would pass the ignore on
-  return subprocess.Popen(argv, cwd=REPO, env=environ(JAX_PLATFORMS="cpu", **env),
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+  return subprocess.Popen(
+      argv,
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu", **env),
+      stdout=subprocess.PIPE,
+      stderr=subprocess.PIPE,
+      text=True,
+      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+  )
 
 
 _SLEEPER = """
@@ -117,9 +123,16 @@ def test_sigint_while_jax_and_orbax_run_exits_130_every_time(tmp_path):
 def test_sigterm_during_make_dataset_stops_sumo_and_cleans_up(tmp_path):
   temp, data = tmp_path / "temp", tmp_path / "data"
   temp.mkdir()
-  proc = _start([sys.executable, "experiments/make_dataset.py",
-                 "--config=configs/dataset.py:tiny", f"--data_dir={data}"], tmp_path,
-                TMPDIR=str(temp))
+  proc = _start(
+      [
+          sys.executable,
+          "experiments/make_dataset.py",
+          "--config=configs/dataset.py:tiny",
+          f"--data_dir={data}",
+      ],
+      tmp_path,
+      TMPDIR=str(temp),
+  )
   try:
     for _ in range(1200):  # SUMO runs (its command line names the temporary directory)
       if any(p != proc.pid for p in _procs_with(str(temp))) or proc.poll() is not None:
@@ -130,7 +143,7 @@ def test_sigterm_during_make_dataset_stops_sumo_and_cleans_up(tmp_path):
     _, stderr = proc.communicate(timeout=120)
   finally:
     proc.kill()
-  lines = [l for l in stderr.splitlines() if l.startswith("make_dataset")]
+  lines = [s for s in stderr.splitlines() if s.startswith("make_dataset")]
   assert proc.returncode == 143, stderr
   assert lines == ["make_dataset: error: terminated; rerun to resume"], stderr
   time.sleep(1.0)
@@ -138,20 +151,33 @@ def test_sigterm_during_make_dataset_stops_sumo_and_cleans_up(tmp_path):
   assert not (data / "cache" / "metadata.json").exists()
 
 
-@pytest.mark.parametrize("text, named", [
-    ("def get_config(:\n", "SyntaxError: invalid syntax"),
-    pytest.param("x = 1\n", "has no attribute 'get_config'", marks=pytest.mark.slow),
-    pytest.param('{"model": {"num_heads": 3}}\n', "has no attribute 'get_config'",
-                 marks=pytest.mark.slow),  # a run's config.json
-])
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("def get_config(:\n", "SyntaxError: invalid syntax"),
+        pytest.param("x = 1\n", "has no attribute 'get_config'", marks=pytest.mark.slow),
+        pytest.param(
+            '{"model": {"num_heads": 3}}\n', "has no attribute 'get_config'", marks=pytest.mark.slow
+        ),  # a run's config.json
+    ],
+)
 def test_a_config_file_that_cannot_be_loaded_is_one_line(tmp_path, text, named):
   config = tmp_path / ("config.json" if text.startswith("{") else "config.py")
   config.write_text(text)
-  proc = subprocess.run([sys.executable, "experiments/train_diffusion.py",
-                         f"--config={config}", f"--workdir={tmp_path / 'new'}"], cwd=REPO,
-                        env=environ(JAX_PLATFORMS="cpu"), capture_output=True, text=True,
-                        timeout=300)
-  lines = [l for l in proc.stderr.splitlines() if l.strip()]
+  proc = subprocess.run(
+      [
+          sys.executable,
+          "experiments/train_diffusion.py",
+          f"--config={config}",
+          f"--workdir={tmp_path / 'new'}",
+      ],
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      capture_output=True,
+      text=True,
+      timeout=300,
+  )
+  lines = [s for s in proc.stderr.splitlines() if s.strip()]
   assert proc.returncode == 2 and len(lines) == 1, proc.stderr
   assert lines[0].startswith(f"train_diffusion: error: --config={config}") and named in lines[0]
   assert not (tmp_path / "new").exists()

@@ -23,8 +23,14 @@ print(sorted({n.split(".")[0] for n in sys.modules
 
 def test_no_module_of_the_package_imports_sklearn_sumo_or_tests():
   env = environ(JAX_PLATFORMS="cpu")
-  proc = subprocess.run([sys.executable, "-c", _IMPORT_ALL], cwd=REPO, env=env,
-                        capture_output=True, text=True, timeout=600)
+  proc = subprocess.run(
+      [sys.executable, "-c", _IMPORT_ALL],
+      cwd=REPO,
+      env=env,
+      capture_output=True,
+      text=True,
+      timeout=600,
+  )
   assert proc.returncode == 0, proc.stderr[-3000:]
   assert proc.stdout.strip().splitlines()[-1] == "[]"
 
@@ -32,9 +38,12 @@ def test_no_module_of_the_package_imports_sklearn_sumo_or_tests():
 def _package_imports() -> dict[str, set[str]]:
   """{module: the cvmdx_jax modules it imports at module level} from the source (AST)."""
   import ast
+
   root = REPO / "cvmdx_jax"
-  modules = {".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__"): p
-             for p in root.rglob("*.py")}
+  modules = {
+      ".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__"): p
+      for p in root.rglob("*.py")
+  }
   graph = {}
   for name, path in modules.items():
     deps = set()
@@ -42,8 +51,10 @@ def _package_imports() -> dict[str, set[str]]:
       if isinstance(node, ast.Import):
         deps |= {a.name for a in node.names}
       elif isinstance(node, ast.ImportFrom) and node.module:
-        deps |= {f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules
-                 else node.module for a in node.names}
+        deps |= {
+            f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+            for a in node.names
+        }
     graph[name] = {d for d in deps if d in modules and d != name}
   return graph
 
@@ -93,9 +104,12 @@ def test_no_package_imports_one_that_imports_it_back():
           todo.append(nxt)
     return seen
 
-  loops = sorted(f"{name} -> {dep}" for name, deps in modules.items() for dep in deps
-                 if _package_of(dep) != _package_of(name)
-                 and _package_of(name) in reachable(_package_of(dep)))
+  loops = sorted(
+      f"{name} -> {dep}"
+      for name, deps in modules.items()
+      for dep in deps
+      if _package_of(dep) != _package_of(name) and _package_of(name) in reachable(_package_of(dep))
+  )
   assert loops == []
 
 
@@ -103,6 +117,11 @@ def test_the_configs_sit_below_every_package_that_uses_them():
   """cvmdx_jax.config imports only the constants, the ego-motion features and the error
   base class, so models, samplers, trainers and loaders can all import their configs."""
   graph = _package_imports()
-  used = {dep for name, deps in graph.items() if name.startswith("cvmdx_jax.config.")
-          for dep in deps if not dep.startswith("cvmdx_jax.config")}
+  used = {
+      dep
+      for name, deps in graph.items()
+      if name.startswith("cvmdx_jax.config.")
+      for dep in deps
+      if not dep.startswith("cvmdx_jax.config")
+  }
   assert used <= {"cvmdx_jax.constants", "cvmdx_jax.ego_motion", "cvmdx_jax.errors"}, used

@@ -35,8 +35,9 @@ def test_matches_numpy_loop_and_vmaps():
   assert out.shape == (3, 4, 125, 2)
   for i in range(3):
     for j in range(4):
-      np.testing.assert_allclose(out[i, j], numpy_rollout(controls[i, j], v0[i, j], psi0[i, j]),
-                                 atol=2e-3)
+      np.testing.assert_allclose(
+          out[i, j], numpy_rollout(controls[i, j], v0[i, j], psi0[i, j]), atol=2e-3
+      )
   per_sample = jax.vmap(jax.vmap(vmm.rollout))(controls, v0, psi0)
   np.testing.assert_allclose(per_sample, out, atol=1e-5)
 
@@ -59,8 +60,9 @@ def test_constant_yaw_rate_arc():
   x = r * (np.sin(psi0 + w * t) - np.sin(psi0))
   y = -r * (np.cos(psi0 + w * t) - np.cos(psi0))
   np.testing.assert_allclose(out, np.stack([x, y], -1), atol=0.02)
-  np.testing.assert_allclose(np.linalg.norm(out - [-r * math.sin(psi0), r * math.cos(psi0)],
-                                            axis=-1), r, rtol=1e-3)
+  np.testing.assert_allclose(
+      np.linalg.norm(out - [-r * math.sin(psi0), r * math.cos(psi0)], axis=-1), r, rtol=1e-3
+  )
 
 
 def test_reproduces_cvmd_example_files(shared_dir):
@@ -92,8 +94,9 @@ def test_jam_scenarios_never_move_backwards():
   """v0 near 0 (some exactly 0), mostly strong braking with some throttle and steering."""
   rng = np.random.default_rng(1)
   m = 64
-  controls = np.stack([rng.normal(-3.0, 2.5, (m, 125)), rng.normal(0, 0.05, (m, 125))],
-                      -1).astype(np.float32)
+  controls = np.stack([rng.normal(-3.0, 2.5, (m, 125)), rng.normal(0, 0.05, (m, 125))], -1).astype(
+      np.float32
+  )
   v0 = np.where(np.arange(m) % 4 == 0, 0.0, rng.uniform(0, 0.5, m)).astype(np.float32)
   psi0 = rng.normal(0, 0.02, m).astype(np.float32)
   out = np.asarray(jax.jit(vmm.rollout)(controls, v0, psi0), np.float64)
@@ -101,9 +104,8 @@ def test_jam_scenarios_never_move_backwards():
     ref = numpy_rollout(controls[i].astype(np.float64), float(v0[i]), float(psi0[i]))
     np.testing.assert_allclose(out[i], ref, atol=1e-4)
   # Each step's displacement points along the heading of its start: no reversing.
-  heading = psi0[:, None] + np.cumsum(np.r_['-1', np.zeros((m, 1)), controls[:, :-1, 1]],
-                                      -1) * 0.04
-  step = np.diff(np.r_['1', np.zeros((m, 1, 2)), out], axis=1)
+  heading = psi0[:, None] + np.cumsum(np.r_["-1", np.zeros((m, 1)), controls[:, :-1, 1]], -1) * 0.04
+  step = np.diff(np.r_["1", np.zeros((m, 1, 2)), out], axis=1)
   along = step[..., 0] * np.cos(heading) + step[..., 1] * np.sin(heading)
   assert along.min() > -1e-5
   # With a zero yaw rate the path is a ray: x never decreases.
@@ -143,8 +145,11 @@ def test_fit_controls_of_a_stop_reproduces_it():
   v0 = np.array([12.0, 6.0, 2.0, 0.0], np.float32)
   b = np.array([6.0, 3.0, 5.0, 4.0], np.float32)
   t = 0.04 * np.arange(1, 126)
-  s = np.where(t < v0[:, None] / np.maximum(b[:, None], 1e-9), v0[:, None] * t
-               - 0.5 * b[:, None] * t**2, v0[:, None]**2 / (2 * b[:, None]))
+  s = np.where(
+      t < v0[:, None] / np.maximum(b[:, None], 1e-9),
+      v0[:, None] * t - 0.5 * b[:, None] * t**2,
+      v0[:, None] ** 2 / (2 * b[:, None]),
+  )
   future = np.stack([s, 0 * s], -1).astype(np.float32)
   fitted = vmm.fit_controls(future, v0, np.zeros(4, np.float32))
   out = np.asarray(vmm.rollout(fitted, v0, 0.0))

@@ -5,7 +5,13 @@ import dataclasses
 from typing import ClassVar
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.config.fields import AT_LEAST_TWO, BELOW_ONE, POSITIVE, ConfigFieldError, check_ranges
+from cvmdx_jax.config.fields import (
+    AT_LEAST_TWO,
+    BELOW_ONE,
+    POSITIVE,
+    ConfigFieldError,
+    check_ranges,
+)
 
 PAPER_SCALE = (constants.ACCEL_SCALE, constants.YAW_RATE_SCALE)
 

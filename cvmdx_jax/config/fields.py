@@ -79,7 +79,8 @@ def check_integers(obj: Any, names: tuple[str, ...]) -> None:
   for name in names:
     value = getattr(obj, name)
     whole = isinstance(value, numbers.Integral) or (
-        isinstance(value, float) and math.isfinite(value) and value == int(value))
+        isinstance(value, float) and math.isfinite(value) and value == int(value)
+    )
     if isinstance(value, bool) or not whole:
       raise ConfigFieldError(name, value, "must be a whole number")
     object.__setattr__(obj, name, int(value))

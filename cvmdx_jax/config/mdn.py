@@ -65,5 +65,6 @@ class MDNRunConfig(BaselineRunConfig):
     sections = dict(config.items())
     model = dict(sections.pop("model").items())
     model.setdefault("num_tokens", 0)
-    return to_dataclass(cls, sections, model=to_dataclass(MixtureDensityConfig, model,
-                                                          where="model"))
+    return to_dataclass(
+        cls, sections, model=to_dataclass(MixtureDensityConfig, model, where="model")
+    )

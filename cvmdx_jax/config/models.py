@@ -5,8 +5,14 @@ import dataclasses
 import math
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.config.fields import (BELOW_ONE, FRACTION, NON_NEGATIVE, POSITIVE,
-                                     ConfigFieldError, check_ranges)
+from cvmdx_jax.config.fields import (
+    BELOW_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    ConfigFieldError,
+    check_ranges,
+)
 from cvmdx_jax.errors import UserError
 
 
@@ -190,16 +196,24 @@ class UNetConfig:
     if not levels:
       raise ConfigFieldError("channel_mult", self.channel_mult, "needs at least one level")
     if any(level >= levels for level in self.attention_levels):
-      raise ConfigFieldError("attention_levels", self.attention_levels,
-                             f"the levels are 0..{levels - 1} (one per channel_mult entry)")
+      raise ConfigFieldError(
+          "attention_levels",
+          self.attention_levels,
+          f"the levels are 0..{levels - 1} (one per channel_mult entry)",
+      )
     widths = [self.base_channels * m for m in self.channel_mult]
     for name, parts, attended in (
         ("groups", self.groups, range(levels)),
-        ("num_heads", self.num_heads, {*self.attention_levels, levels - 1})):
+        ("num_heads", self.num_heads, {*self.attention_levels, levels - 1}),
+    ):
       bad = sorted({widths[level] for level in attended if widths[level] % parts})
       if bad:
-        raise ConfigFieldError(name, parts, f"must divide the channels of every level it "
-                               f"splits (base_channels x channel_mult: {bad})")
+        raise ConfigFieldError(
+            name,
+            parts,
+            f"must divide the channels of every level it "
+            f"splits (base_channels x channel_mult: {bad})",
+        )
 
   @property
   def null_token(self) -> int:

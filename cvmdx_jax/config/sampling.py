@@ -6,8 +6,14 @@ from typing import ClassVar
 
 from cvmdx_jax import constants
 from cvmdx_jax.config.denoiser import DenoiserConfig
-from cvmdx_jax.config.fields import (FRACTION, NON_NEGATIVE, POSITIVE, ConfigFieldError,
-                                     check_integers, check_ranges)
+from cvmdx_jax.config.fields import (
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    ConfigFieldError,
+    check_integers,
+    check_ranges,
+)
 from cvmdx_jax.errors import UserError
 
 FORMS = ("paper", "official")
@@ -169,12 +175,17 @@ class SamplingConfig:
         },
     )
     if self.num_samples > MAX_SAMPLES:
-      raise ConfigFieldError("num_samples", self.num_samples, f"must be <= {MAX_SAMPLES} "
-                             "(the samples of one chunk of scenarios are held at once)")
+      raise ConfigFieldError(
+          "num_samples",
+          self.num_samples,
+          f"must be <= {MAX_SAMPLES} " "(the samples of one chunk of scenarios are held at once)",
+      )
     if self.hypotheses.c_max > self.num_samples:
-      raise ConfigFieldError("hypotheses.c_max", self.hypotheses.c_max,
-                             f"must be <= num_samples={self.num_samples} (components are "
-                             "fitted to the samples)")
+      raise ConfigFieldError(
+          "hypotheses.c_max",
+          self.hypotheses.c_max,
+          f"must be <= num_samples={self.num_samples} (components are " "fitted to the samples)",
+      )
     if len(self.intent_prior) != constants.NUM_CLASSES:
       raise ConfigFieldError(
           "intent_prior",

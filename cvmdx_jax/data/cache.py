@@ -13,7 +13,6 @@ settings and sources only.
 
 from pathlib import Path
 
-
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.storage import checksums, identity
@@ -25,8 +24,10 @@ METADATA = "metadata.json"
 def sources(root, paths) -> list:
   """[[name relative to `root` (posix), bytes, sha256], ...] sorted by name."""
   root = Path(root)
-  rows = [[Path(p).relative_to(root).as_posix(), Path(p).stat().st_size,
-           checksums.file_sha256(p)] for p in paths]
+  rows = [
+      [Path(p).relative_to(root).as_posix(), Path(p).stat().st_size, checksums.file_sha256(p)]
+      for p in paths
+  ]
   return sorted(rows)
 
 
@@ -38,8 +39,12 @@ def write(cache_dir, splits: dict, settings: dict, sources: list) -> dict:
   for name, scen in splits.items():
     checksums.write_npz(cache_dir / f"{name}.npz", **scen.as_dict())
     entries[name] = {"file": f"{name}.npz", "count": len(scen)}
-  metadata = {"format_version": FORMAT_VERSION, "settings": settings,
-              "sources": [list(s) for s in sources], "splits": entries}
+  metadata = {
+      "format_version": FORMAT_VERSION,
+      "settings": settings,
+      "sources": [list(s) for s in sources],
+      "splits": entries,
+  }
   checksums.write_json(cache_dir / METADATA, metadata, indent=1, sort_keys=True)
   return metadata
 
@@ -50,18 +55,30 @@ def _is_int(value) -> bool:
 
 def _well_formed(metadata) -> bool:
   """True when `metadata` has the shape `write` gives it (types included)."""
-  if not (isinstance(metadata, dict) and metadata.get("format_version") == FORMAT_VERSION
-          and isinstance(metadata.get("settings"), dict)
-          and isinstance(metadata.get("sources"), list)
-          and isinstance(metadata.get("splits"), dict)):
+  if not (
+      isinstance(metadata, dict)
+      and metadata.get("format_version") == FORMAT_VERSION
+      and isinstance(metadata.get("settings"), dict)
+      and isinstance(metadata.get("sources"), list)
+      and isinstance(metadata.get("splits"), dict)
+  ):
     return False
   for source in metadata["sources"]:
-    if not (isinstance(source, list) and len(source) == 3 and isinstance(source[0], str)
-            and _is_int(source[1]) and isinstance(source[2], str)):
+    if not (
+        isinstance(source, list)
+        and len(source) == 3
+        and isinstance(source[0], str)
+        and _is_int(source[1])
+        and isinstance(source[2], str)
+    ):
       return False
   for name, entry in metadata["splits"].items():
-    if not (name.isidentifier() and isinstance(entry, dict) and entry.get("file") == f"{name}.npz"
-            and _is_int(entry.get("count"))):
+    if not (
+        name.isidentifier()
+        and isinstance(entry, dict)
+        and entry.get("file") == f"{name}.npz"
+        and _is_int(entry.get("count"))
+    ):
       return False
   return True
 
@@ -80,8 +97,10 @@ def required_metadata(cache_dir) -> dict:
   there is none (or a malformed or older one)."""
   metadata = read_metadata(cache_dir)
   if metadata is None:
-    raise DataError(Path(cache_dir) / METADATA, "no dataset cache here, or a malformed or "
-                    "older one (run make_dataset)")
+    raise DataError(
+        Path(cache_dir) / METADATA,
+        "no dataset cache here, or a malformed or " "older one (run make_dataset)",
+    )
   return metadata
 
 
@@ -89,14 +108,16 @@ def matches(metadata: dict | None, settings: dict, sources: list) -> bool:
   """True when `metadata` was made with these settings from these source files."""
   return metadata is not None and not identity.differing_keys(
       {"settings": metadata["settings"], "sources": metadata["sources"]},
-      {"settings": settings, "sources": sources})
+      {"settings": settings, "sources": sources},
+  )
 
 
 def dataset_id(metadata: dict) -> str:
   """12 hex digits of the content id of format version, settings and sources (not the
   paths)."""
-  return identity.content_id({k: metadata[k] for k in ("format_version", "settings",
-                                                       "sources")})[:12]
+  return identity.content_id({k: metadata[k] for k in ("format_version", "settings", "sources")})[
+      :12
+  ]
 
 
 def read_split(cache_dir, split: str) -> scenarios_lib.Scenarios:
@@ -104,15 +125,18 @@ def read_split(cache_dir, split: str) -> scenarios_lib.Scenarios:
   cache_dir = Path(cache_dir)
   entries = required_metadata(cache_dir)["splits"]
   if split not in entries:
-    raise DataError(cache_dir / METADATA, f"unknown split '{split}', available: "
-                    f"{sorted(entries)}", column="split")
+    raise DataError(
+        cache_dir / METADATA,
+        f"unknown split '{split}', available: " f"{sorted(entries)}",
+        column="split",
+    )
   path = cache_dir / entries[split]["file"]
   try:
     arrays = checksums.read_npz(path)
   except OSError as err:
     raise DataError(path, f"cache file unreadable ({err})") from err
   except checksums.CorruptRunError as err:
-    raise DataError(path, f"cache file does not match its checksum (interrupted build?): "
-                    f"{err}") from err
-  return scenarios_lib.Scenarios(**{k: arrays[k] for k in scenarios_lib.FIELDS}).validate(
-      str(path))
+    raise DataError(
+        path, f"cache file does not match its checksum (interrupted build?): " f"{err}"
+    ) from err
+  return scenarios_lib.Scenarios(**{k: arrays[k] for k in scenarios_lib.FIELDS}).validate(str(path))

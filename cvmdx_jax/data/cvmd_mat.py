@@ -16,9 +16,9 @@ import numpy as np
 import scipy.io
 
 from cvmdx_jax import constants
-from cvmdx_jax.storage import atomic
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
+from cvmdx_jax.storage import atomic
 
 _OBS_KEYS = ("observed_data_x", "observed_data_y", "observed_data_vx", "observed_data_vy")
 _SCENARIO_TYPES = ("keep_lane", "lane_change_right", "lane_change_left")
@@ -43,36 +43,42 @@ def _read_file(path: Path, label: int) -> dict:
     raise DataError(path, f"unreadable .mat file ({err})") from err
   obs_shape = (constants.NUM_VEHICLES, constants.T_OBS)
   obs = np.stack([_field(mat, path, k, obs_shape) for k in _OBS_KEYS], -1)  # (9, 75, 4)
-  pred = {k: _field(mat, path, f"predicted_{k}", (1, constants.T_PRED))[0]
-          for k in ("x", "y", "ax", "dpsi")}
+  pred = {
+      k: _field(mat, path, f"predicted_{k}", (1, constants.T_PRED))[0]
+      for k in ("x", "y", "ax", "dpsi")
+  }
   kind = str(np.asarray(mat.get("scenario_type", [""])).ravel()[0]).strip()
   if kind and kind != _SCENARIO_TYPES[label]:
-    raise DataError(path, f"scenario_type '{kind}' in folder class{label}",
-                    column="scenario_type")
+    raise DataError(path, f"scenario_type '{kind}' in folder class{label}", column="scenario_type")
   mask = ~((obs[..., 0] == -1) & (obs[..., 1] == -1))
   if not mask[0, -1]:
-    raise DataError(path, "the ego is absent at the last observed step",
-                    column="observed_data_x")
+    raise DataError(path, "the ego is absent at the last observed step", column="observed_data_x")
   origin = obs[0, -1, :2]
   xi = obs.copy()
   xi[..., :2] -= origin
   xi *= mask[..., None]
-  return {"xi": xi, "mask": mask,
-          "future": np.stack([pred["x"], pred["y"]], -1) - origin,
-          "controls": np.stack([pred["ax"], pred["dpsi"]], -1),
-          "v0": _field(mat, path, "v0", (1, 1))[0, 0],
-          "psi0": _field(mat, path, "psi_0", (1, 1))[0, 0], "label": label}
+  return {
+      "xi": xi,
+      "mask": mask,
+      "future": np.stack([pred["x"], pred["y"]], -1) - origin,
+      "controls": np.stack([pred["ax"], pred["dpsi"]], -1),
+      "v0": _field(mat, path, "v0", (1, 1))[0, 0],
+      "psi0": _field(mat, path, "psi_0", (1, 1))[0, 0],
+      "label": label,
+  }
 
 
 def load(split_dir) -> scenarios_lib.Scenarios:
   """Reads `split_dir/class{0,1,2}/*.mat` (sorted by class, then file name)."""
   split_dir = Path(split_dir)
-  records = [_read_file(path, label) for label in range(constants.NUM_CLASSES)
-             for path in sorted((split_dir / f"class{label}").glob("*.mat"))]
+  records = [
+      _read_file(path, label)
+      for label in range(constants.NUM_CLASSES)
+      for path in sorted((split_dir / f"class{label}").glob("*.mat"))
+  ]
   if not records:
     raise DataError(split_dir, "empty selection: no class{0,1,2}/*.mat files")
-  return scenarios_lib.from_arrays(
-      **{k: np.stack([r[k] for r in records]) for k in records[0]})
+  return scenarios_lib.from_arrays(**{k: np.stack([r[k] for r in records]) for k in records[0]})
 
 
 def export(scenarios: scenarios_lib.Scenarios, split_dir) -> list:
@@ -90,11 +96,16 @@ def export(scenarios: scenarios_lib.Scenarios, split_dir) -> list:
     obs = np.where(s["mask"][i][..., None], s["xi"][i].astype(np.float64), -1.0)
     mat = {k: obs[..., j] for j, k in enumerate(_OBS_KEYS)}
     future, controls = s["future"][i].astype(np.float64), s["controls"][i].astype(np.float64)
-    mat.update(predicted_x=future[None, :, 0], predicted_y=future[None, :, 1],
-               predicted_ax=controls[None, :, 0], predicted_dpsi=controls[None, :, 1],
-               psi_0=np.array([[s["psi0"][i]]], np.float64),
-               v0=np.array([[s["v0"][i]]], np.float64),
-               scenario_type=np.array([_SCENARIO_TYPES[label]]), data_keys=keys)
+    mat.update(
+        predicted_x=future[None, :, 0],
+        predicted_y=future[None, :, 1],
+        predicted_ax=controls[None, :, 0],
+        predicted_dpsi=controls[None, :, 1],
+        psi_0=np.array([[s["psi0"][i]]], np.float64),
+        v0=np.array([[s["v0"][i]]], np.float64),
+        scenario_type=np.array([_SCENARIO_TYPES[label]]),
+        data_keys=keys,
+    )
     path = split_dir / f"class{label}" / f"{i:06d}.mat"
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic.write_mat(path, mat)

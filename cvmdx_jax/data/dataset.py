@@ -18,8 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cvmdx_jax.config.fields import (BELOW_ONE, ConfigFieldError, FRACTION, NON_NEGATIVE, POSITIVE,
-                                     SEED, check_ranges)
+from cvmdx_jax.config.fields import (
+    BELOW_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    SEED,
+    ConfigFieldError,
+    check_ranges,
+)
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.storage import atomic, identity, locking
@@ -31,12 +38,33 @@ _MAT_SPLITS = ("train", "val", "test")  # what a cvmd_mat source builds
 CONFIG_RANGES = {
     "": {"seed": SEED, "mat_val_fraction": BELOW_ONE},
     "splits": dict.fromkeys(SPLITS, POSITIVE),
-    "extraction": {"seed": SEED, "lc_offsets_s": POSITIVE, "kl_stride_s": POSITIVE,
-                   "control_smoothing": NON_NEGATIVE, "control_iterations": POSITIVE},
-    "sumo": {"seed": SEED, "warmup_s": NON_NEGATIVE, "truck_share": FRACTION,
-             **dict.fromkeys(("workers", "duration_s", "road_length_m", "section_length_m",
-                              "lanes", "lane_width_m", "speed_limits_kmh", "flow_per_lane",
-                              "car_types", "truck_types"), POSITIVE)},
+    "extraction": {
+        "seed": SEED,
+        "lc_offsets_s": POSITIVE,
+        "kl_stride_s": POSITIVE,
+        "control_smoothing": NON_NEGATIVE,
+        "control_iterations": POSITIVE,
+    },
+    "sumo": {
+        "seed": SEED,
+        "warmup_s": NON_NEGATIVE,
+        "truck_share": FRACTION,
+        **dict.fromkeys(
+            (
+                "workers",
+                "duration_s",
+                "road_length_m",
+                "section_length_m",
+                "lanes",
+                "lane_width_m",
+                "speed_limits_kmh",
+                "flow_per_lane",
+                "car_types",
+                "truck_types",
+            ),
+            POSITIVE,
+        ),
+    },
     "sumo.recordings": dict.fromkeys(SPLITS, NON_NEGATIVE),
     "sumo.held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
     "sumo.val_held_out": {"lanes": POSITIVE, "duration_s": POSITIVE},
@@ -74,11 +102,17 @@ def _wanted_ids(config, data_dir: Path) -> dict:
   before anything is simulated or read, where no split has one. A split given no ids
   (highD: `()`, SUMO: 0 recordings) is not built."""
   sumo_source = config.source == "sumo"
-  wanted = (sumo_plan.split_ids(config.sumo) if sumo_source
-            else {name: list(config.splits.get(name, ())) for name in SPLITS})
+  wanted = (
+      sumo_plan.split_ids(config.sumo)
+      if sumo_source
+      else {name: list(config.splits.get(name, ())) for name in SPLITS}
+  )
   if not any(wanted.values()):
-    raise DataError(data_dir, "empty selection: no split has a recording",
-                    column="sumo.recordings" if sumo_source else "splits")
+    raise DataError(
+        data_dir,
+        "empty selection: no split has a recording",
+        column="sumo.recordings" if sumo_source else "splits",
+    )
   return wanted
 
 
@@ -104,16 +138,23 @@ def _split_ids(config, wanted: dict, available, where) -> dict:
   for name in SPLITS:
     for i in wanted[name]:
       if i in seen:
-        raise DataError(where, f"recording {i} is in both {seen[i]} and {name}",
-                        column=f"{column}.{name}")
+        raise DataError(
+            where, f"recording {i} is in both {seen[i]} and {name}", column=f"{column}.{name}"
+        )
       seen[i] = name
     ids = [i for i in wanted[name] if i in available]
     if not ids and wanted[name]:
-      hint = ("" if config.source == "sumo" else
-              f"; to build without {name}, give it no ids: --config.splits.{name}=()")
-      raise DataError(where, f"empty selection: none of the {name} recordings "
-                      f"{wanted[name]} is there (have {available}){hint}",
-                      column=f"{column}.{name}")
+      hint = (
+          ""
+          if config.source == "sumo"
+          else f"; to build without {name}, give it no ids: --config.splits.{name}=()"
+      )
+      raise DataError(
+          where,
+          f"empty selection: none of the {name} recordings "
+          f"{wanted[name]} is there (have {available}){hint}",
+          column=f"{column}.{name}",
+      )
     if ids:
       out[name] = ids
   return out
@@ -135,10 +176,17 @@ def _read_mat(config, mat_dir: Path) -> dict:
   train = cvmd_mat.load(mat_dir / "train")
   val = mat_val_index(train.label, config.mat_val_fraction, config.seed)
   if len(val) == 0 or len(val) == len(train):
-    raise DataError(mat_dir / "train", f"mat_val_fraction {config.mat_val_fraction} leaves "
-                    f"train or val empty ({len(train)} files)", column="mat_val_fraction")
-  return {"train": train.take(np.setdiff1d(np.arange(len(train)), val)),
-          "val": train.take(val), "test": cvmd_mat.load(mat_dir / "test")}
+    raise DataError(
+        mat_dir / "train",
+        f"mat_val_fraction {config.mat_val_fraction} leaves "
+        f"train or val empty ({len(train)} files)",
+        column="mat_val_fraction",
+    )
+  return {
+      "train": train.take(np.setdiff1d(np.arange(len(train)), val)),
+      "val": train.take(val),
+      "test": cvmd_mat.load(mat_dir / "test"),
+  }
 
 
 @locking.holds("data_dir")
@@ -157,8 +205,11 @@ def build(config, data_dir) -> dict:
   data_dir = Path(data_dir)
   checked_config(config)
   if config.source not in SOURCES:
-    raise DataError(data_dir, f"unknown source '{config.source}', expected one of {SOURCES}",
-                    column="config.source")
+    raise DataError(
+        data_dir,
+        f"unknown source '{config.source}', expected one of {SOURCES}",
+        column="config.source",
+    )
   settings = _settings(config)
   if config.source == "cvmd_mat":
     mat_dir = root = Path(config.mat_dir)
@@ -167,13 +218,21 @@ def build(config, data_dir) -> dict:
     read = lambda: _read_mat(config, mat_dir)
   else:
     wanted = _wanted_ids(config, data_dir)
-    rec_dir = root = (_sumo_recordings(config, data_dir, wanted) if config.source == "sumo"
-                      else Path(config.highd_dir))
+    rec_dir = root = (
+        _sumo_recordings(config, data_dir, wanted)
+        if config.source == "sumo"
+        else Path(config.highd_dir)
+    )
     if not rec_dir.is_dir():
       raise DataError(rec_dir, "highD directory not found", column="config.highd_dir")
     ids = _split_ids(config, wanted, highd.available_recordings(rec_dir), rec_dir)
-    files = [p for split in ids.values() for i in split
-             for p in highd.recording_paths(rec_dir, i).values() if p.is_file()]
+    files = [
+        p
+        for split in ids.values()
+        for i in split
+        for p in highd.recording_paths(rec_dir, i).values()
+        if p.is_file()
+    ]
     ext = extract.as_config(config.extraction)
     names = tuple(ids)
     read = lambda: {name: highd.load_scenarios(rec_dir, ids[name], ext) for name in names}

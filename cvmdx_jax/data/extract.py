@@ -106,11 +106,15 @@ def observed(rec, rows: np.ndarray) -> dict:
   xy = rec.pos[all_rows] - origin[:, None, None]
   xi = np.concatenate([xy, rec.vel[all_rows]], -1) * mask[..., None]
   vel0 = rec.vel[rows]
-  return {"xi": xi.astype(np.float32), "mask": mask,
-          "v0": np.hypot(vel0[:, 0], vel0[:, 1]).astype(np.float32),
-          "psi0": np.arctan2(vel0[:, 1], vel0[:, 0]).astype(np.float32),
-          "track_id": rec.track_id[rows], "frame": rec.frame[rows],
-          "recording_id": np.full(len(rows), rec.recording_id)}
+  return {
+      "xi": xi.astype(np.float32),
+      "mask": mask,
+      "v0": np.hypot(vel0[:, 0], vel0[:, 1]).astype(np.float32),
+      "psi0": np.arctan2(vel0[:, 1], vel0[:, 0]).astype(np.float32),
+      "track_id": rec.track_id[rows],
+      "frame": rec.frame[rows],
+      "recording_id": np.full(len(rows), rec.recording_id),
+  }
 
 
 def _fit_in_chunks(future, v0, psi0, config: ExtractionConfig, chunk: int = 2048):
@@ -118,10 +122,14 @@ def _fit_in_chunks(future, v0, psi0, config: ExtractionConfig, chunk: int = 2048
   out = []
   for start in range(0, len(future), chunk):
     n = min(chunk, len(future) - start)
-    pad = lambda x: sharding.pad_batch(x[start:start + n], chunk)[0]
-    out.append(np.asarray(vmm.fit_controls(pad(future), pad(v0), pad(psi0),
-                                       config.control_smoothing,
-                                       config.control_iterations))[:n])
+    pad = lambda x: sharding.pad_batch(x[start : start + n], chunk)[0]
+    out.append(
+        np.asarray(
+            vmm.fit_controls(
+                pad(future), pad(v0), pad(psi0), config.control_smoothing, config.control_iterations
+            )
+        )[:n]
+    )
   return np.concatenate(out) if out else np.zeros((0, constants.T_PRED, 2), np.float32)
 
 
@@ -146,16 +154,20 @@ def scenarios_from_recordings(recordings, config, source: str) -> scenarios_lib.
     labels.append(cand["label"][keep])
     ttlc.append(cand["ttlc"][keep])
   if not parts or sum(len(x) for x in labels) == 0:
-    raise DataError(source, "empty selection: no scenario satisfies the extraction rules",
-                    column="recording_ids")
+    raise DataError(
+        source,
+        "empty selection: no scenario satisfies the extraction rules",
+        column="recording_ids",
+    )
   arrays = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
   arrays["label"] = np.concatenate(labels)
   arrays["time_to_lane_change"] = np.concatenate(ttlc)
   if config.balance:
     index = scenarios_lib.balanced_indices(arrays["label"], config.seed)
     if len(index) == 0:
-      raise DataError(source, "empty selection: a class has no scenario, cannot balance",
-                      column="label")
+      raise DataError(
+          source, "empty selection: a class has no scenario, cannot balance", column="label"
+      )
     arrays = {k: v[index] for k, v in arrays.items()}
   arrays["controls"] = _fit_in_chunks(arrays["future"], arrays["v0"], arrays["psi0"], config)
   return scenarios_lib.from_arrays(**arrays)

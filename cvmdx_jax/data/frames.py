@@ -46,17 +46,25 @@ def row_of(rec: highd.Recording, track_id: int, frame: int) -> int:
   3 s of history at that frame."""
   first, last = frame_range(rec)
   if not first <= frame <= last:
-    raise DataError(rec.path, f"frame {frame} outside the recording (frames {first}..{last})",
-                    column="frame")
+    raise DataError(
+        rec.path, f"frame {frame} outside the recording (frames {first}..{last})", column="frame"
+    )
   if not 0 < track_id < len(rec.num_frames) or rec.num_frames[track_id] == 0:
     raise DataError(rec.path, f"track {track_id} does not exist", column="id")
   start, count = rec.first_frame[track_id], rec.num_frames[track_id]
   if not start <= frame < start + count:
-    raise DataError(rec.path, f"track {track_id} is not in frame {frame} (frames {start}.."
-                    f"{start + count - 1})", column="frame")
+    raise DataError(
+        rec.path,
+        f"track {track_id} is not in frame {frame} (frames {start}.." f"{start + count - 1})",
+        column="frame",
+    )
   if frame - start < HISTORY:
-    raise DataError(rec.path, f"track {track_id} has {frame - start + 1} frames of history "
-                    f"at frame {frame}, needs {HISTORY + 1} (3 s)", column="frame")
+    raise DataError(
+        rec.path,
+        f"track {track_id} has {frame - start + 1} frames of history "
+        f"at frame {frame}, needs {HISTORY + 1} (3 s)",
+        column="frame",
+    )
   return int(rec.first_row[track_id] + frame - start)
 
 
@@ -65,14 +73,18 @@ def observed(rec: highd.Recording, rows: np.ndarray) -> dict:
   `observable_rows`) plus 'origin' (N, 2), their image-frame centres, and 'direction' (N,),
   their drivingDirection."""
   rows = np.asarray(rows, np.int64)
-  return {**extract.observed(rec, rows), "origin": image_centre(rec, rows),
-          "direction": rec.direction[rows]}
+  return {
+      **extract.observed(rec, rows),
+      "origin": image_centre(rec, rows),
+      "direction": rec.direction[rows],
+  }
 
 
 def rows_of(rec: highd.Recording, track_ids, frames) -> np.ndarray:
   """(N,) rows of the vehicles `track_ids` (N,) at `frames` (N,); DataError as `row_of`."""
-  return np.array([row_of(rec, int(t), int(f))
-                   for t, f in zip(np.ravel(track_ids), np.ravel(frames))], np.int64)
+  return np.array(
+      [row_of(rec, int(t), int(f)) for t, f in zip(np.ravel(track_ids), np.ravel(frames))], np.int64
+  )
 
 
 def futures(rec: highd.Recording, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +111,8 @@ def scene(data_dir, recording_id: int) -> dict:
   for name, column in (("length", "width"), ("width", "height")):
     sizes[name] = np.full(ids.max() + 1, np.nan)
     sizes[name][ids] = pd.to_numeric(meta[column], errors="coerce").to_numpy(np.float64)
-  markings = {key: np.array([float(v) for v in str(rec_meta[column].iloc[0]).split(";")])
-              for key, column in (("upper", "upperLaneMarkings"),
-                                  ("lower", "lowerLaneMarkings"))}
+  markings = {
+      key: np.array([float(v) for v in str(rec_meta[column].iloc[0]).split(";")])
+      for key, column in (("upper", "upperLaneMarkings"), ("lower", "lowerLaneMarkings"))
+  }
   return {**markings, **sizes}

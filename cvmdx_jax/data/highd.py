@@ -53,8 +53,9 @@ from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.data.highd_csv import read_table
 from cvmdx_jax.data.highd_format import (  # the format's names, read here and by users
-    ABSURD, COLUMNS, NEIGHBOUR_COLUMNS, POSITION, RANGES, READ_COLUMNS,
-    RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS)
+    NEIGHBOUR_COLUMNS,
+    POSITION,
+)
 
 MAX_DIRECTION_SLACK = 1.0  # m/s of xVelocity against the driving direction
 MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
@@ -89,11 +90,13 @@ def recording_paths(data_dir, recording_id: int) -> dict:
   base = recordings_dir(data_dir)
   names = _tracks_files(base).get(recording_id, [f"{recording_id:02d}_tracks.csv"])
   if len(names) > 1:
-    raise DataError(base / names[0], f"recording {recording_id} has {len(names)} tracks "
-                    f"files ({', '.join(names)}); keep one")
+    raise DataError(
+        base / names[0],
+        f"recording {recording_id} has {len(names)} tracks "
+        f"files ({', '.join(names)}); keep one",
+    )
   prefix = names[0][: -len("tracks.csv")]
-  return {kind: base / f"{prefix}{kind}.csv" for kind in ("tracks", "tracksMeta",
-                                                          "recordingMeta")}
+  return {kind: base / f"{prefix}{kind}.csv" for kind in ("tracks", "tracksMeta", "recordingMeta")}
 
 
 def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
@@ -102,36 +105,58 @@ def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
     values = np.array([float(v) for v in str(text).split(";")])
   except ValueError:
     values = np.array([np.nan])
-  if (len(values) < 2 or not np.all(np.isfinite(values))
-      or np.any(np.abs(values) > POSITION[1]) or np.any(np.diff(values) <= 0)):
-    raise DataError(path, f"lane markings {text!r} are not >= 2 ascending numbers "
-                    "separated by ';'", row=2, column=column)
+  if (
+      len(values) < 2
+      or not np.all(np.isfinite(values))
+      or np.any(np.abs(values) > POSITION[1])
+      or np.any(np.diff(values) <= 0)
+  ):
+    raise DataError(
+        path,
+        f"lane markings {text!r} are not >= 2 ascending numbers " "separated by ';'",
+        row=2,
+        column=column,
+    )
   return values
 
 
-def _check_motion(path: Path, tracks: pd.DataFrame, direction: np.ndarray,
-                  same_track: np.ndarray) -> None:
+def _check_motion(
+    path: Path, tracks: pd.DataFrame, direction: np.ndarray, same_track: np.ndarray
+) -> None:
   """drivingDirection against xVelocity, and positions against velocities (docstring)."""
   vx = tracks["xVelocity"].to_numpy(np.float64)
   bad = np.where(direction == 2, vx, -vx) < -MAX_DIRECTION_SLACK
   if bad.any():
     row = int(np.argmax(bad))
-    raise DataError(path, f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
-                    f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, "
-                    "2 toward +x)", row=row + 2, column="xVelocity")
-  centre = {c: tracks[c].to_numpy(np.float64) + 0.5 * tracks[s].to_numpy(np.float64)
-            for c, s in (("x", "width"), ("y", "height"))}
+    raise DataError(
+        path,
+        f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
+        f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, "
+        "2 toward +x)",
+        row=row + 2,
+        column="xVelocity",
+    )
+  centre = {
+      c: tracks[c].to_numpy(np.float64) + 0.5 * tracks[s].to_numpy(np.float64)
+      for c, s in (("x", "width"), ("y", "height"))
+  }
   dx = np.diff(centre["x"]) - 0.5 * (vx[1:] + vx[:-1]) * constants.DT
-  for column, bad in (("x", np.abs(dx) > MAX_MOTION_MISMATCH),
-                      ("y", np.abs(np.diff(centre["y"])) > MAX_LATERAL_STEP)):
+  for column, bad in (
+      ("x", np.abs(dx) > MAX_MOTION_MISMATCH),
+      ("y", np.abs(np.diff(centre["y"])) > MAX_LATERAL_STEP),
+  ):
     bad &= same_track
     if bad.any():
       row = int(np.argmax(bad)) + 1
-      raise DataError(path, f"the centre jumps in {column} between frames "
-                      f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
-                      f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
-                      f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
-                      row=row + 2, column=column)
+      raise DataError(
+          path,
+          f"the centre jumps in {column} between frames "
+          f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
+          f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
+          f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
+          row=row + 2,
+          column=column,
+      )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,8 +192,12 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   paths = recording_paths(data_dir, recording_id)
   rec_meta = read_table(paths["recordingMeta"], "recordingMeta")
   if int(rec_meta["frameRate"].iloc[0]) != constants.FRAME_RATE_HZ:
-    raise DataError(paths["recordingMeta"], f"frame rate {rec_meta['frameRate'].iloc[0]}, "
-                    f"expected {constants.FRAME_RATE_HZ}", row=2, column="frameRate")
+    raise DataError(
+        paths["recordingMeta"],
+        f"frame rate {rec_meta['frameRate'].iloc[0]}, " f"expected {constants.FRAME_RATE_HZ}",
+        row=2,
+        column="frameRate",
+    )
   for column in ("upperLaneMarkings", "lowerLaneMarkings"):
     _lane_markings(paths["recordingMeta"], rec_meta[column].iloc[0], column)
   meta = read_table(paths["tracksMeta"], "tracksMeta")
@@ -176,14 +205,22 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   meta_path, path = paths["tracksMeta"], paths["tracks"]
   bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
   if bad.any():
-    raise DataError(meta_path, "finalFrame is not initialFrame + numFrames - 1",
-                    row=int(np.argmax(bad)) + 2, column="finalFrame")
+    raise DataError(
+        meta_path,
+        "finalFrame is not initialFrame + numFrames - 1",
+        row=int(np.argmax(bad)) + 2,
+        column="finalFrame",
+    )
 
   meta_ids = meta["id"].to_numpy(np.int64)
   bad = meta["id"].duplicated().to_numpy()
   if bad.any():
-    raise DataError(meta_path, f"track id {meta_ids[np.argmax(bad)]} appears twice",
-                    row=int(np.argmax(bad)) + 2, column="id")
+    raise DataError(
+        meta_path,
+        f"track id {meta_ids[np.argmax(bad)]} appears twice",
+        row=int(np.argmax(bad)) + 2,
+        column="id",
+    )
   direction_of = meta["drivingDirection"].to_numpy(np.int64)  # 1 or 2 (RANGES)
   size = meta_ids.max() + 1
   known = np.zeros(size + 1, bool)
@@ -197,8 +234,12 @@ def read_recording(data_dir, recording_id: int) -> Recording:
     bad &= ~known[np.clip(values, 0, size)]
     if bad.any():
       row = int(np.argmax(bad))
-      raise DataError(path, f"track id {values[row]} does not exist in {meta_path.name}",
-                      row=row + 2, column=column)
+      raise DataError(
+          path,
+          f"track id {values[row]} does not exist in {meta_path.name}",
+          row=row + 2,
+          column=column,
+      )
   # Rows must be grouped by track with consecutive frames from the track's initialFrame.
   meta_first = np.zeros(size, np.int64)
   meta_first[meta_ids] = meta["initialFrame"].to_numpy(np.int64)
@@ -212,17 +253,26 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   bad[starts] |= np.bincount(ids[starts], minlength=size)[ids[starts]] > 1
   if bad.any():
     row = int(np.argmax(bad))
-    raise DataError(path, f"frames of track {ids[row]} are not consecutive from its "
-                    f"initialFrame {meta_first[ids[row]]} (rows sorted by id, then frame)",
-                    row=row + 2, column="frame")
+    raise DataError(
+        path,
+        f"frames of track {ids[row]} are not consecutive from its "
+        f"initialFrame {meta_first[ids[row]]} (rows sorted by id, then frame)",
+        row=row + 2,
+        column="frame",
+    )
   first_frame = meta_first
   num_frames = np.zeros(size, np.int64)
   num_frames[ids[starts]] = np.diff(np.r_[starts, len(ids)])
   bad = num_frames[meta_ids] != meta_num[meta_ids]
   if bad.any():
     row = int(np.argmax(bad))
-    raise DataError(meta_path, f"track {meta_ids[row]} has {num_frames[meta_ids[row]]} rows "
-                    f"in {path.name} (truncated?)", row=row + 2, column="numFrames")
+    raise DataError(
+        meta_path,
+        f"track {meta_ids[row]} has {num_frames[meta_ids[row]]} rows "
+        f"in {path.name} (truncated?)",
+        row=row + 2,
+        column="numFrames",
+    )
 
   dir_by_id = np.zeros(size, np.int64)
   dir_by_id[meta_ids] = direction_of
@@ -235,10 +285,20 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   pos = np.stack([sign * centre_x, -sign * centre_y], -1)
   vel = np.stack([sign * col("xVelocity"), -sign * col("yVelocity")], -1)
   neighbours = np.stack([tracks[c].to_numpy(np.int64) for c in NEIGHBOUR_COLUMNS], -1)
-  return Recording(recording_id=recording_id, path=str(path), track_id=ids, frame=frames,
-                   lane=tracks["laneId"].to_numpy(np.int64), direction=direction, pos=pos,
-                   vel=vel, neighbours=neighbours, first_row=first_row,
-                   first_frame=first_frame, num_frames=num_frames)
+  return Recording(
+      recording_id=recording_id,
+      path=str(path),
+      track_id=ids,
+      frame=frames,
+      lane=tracks["laneId"].to_numpy(np.int64),
+      direction=direction,
+      pos=pos,
+      vel=vel,
+      neighbours=neighbours,
+      first_row=first_row,
+      first_frame=first_frame,
+      num_frames=num_frames,
+  )
 
 
 def available_recordings(data_dir) -> list[int]:
@@ -266,4 +326,5 @@ def load_scenarios(data_dir, recording_ids, config=None) -> scenarios_lib.Scenar
     raise DataError(data_dir, "empty selection: no recording ids given", column="recording_ids")
   config = extract.default_config() if config is None else config
   return extract.scenarios_from_recordings(
-      (read_recording(data_dir, rid) for rid in recording_ids), config, source=str(data_dir))
+      (read_recording(data_dir, rid) for rid in recording_ids), config, source=str(data_dir)
+  )

@@ -23,8 +23,16 @@ import pandas as pd
 
 from cvmdx_jax.data.errors import DataError, DataWarning
 from cvmdx_jax.data.highd_format import (
-    ABSURD, COLUMNS, MAX_FILE_BYTES, MAX_LINE_BYTES, MAX_ROWS, RANGES, READ_COLUMNS,
-    SIZE_COLUMNS, TEXT_COLUMNS)
+    ABSURD,
+    COLUMNS,
+    MAX_FILE_BYTES,
+    MAX_LINE_BYTES,
+    MAX_ROWS,
+    RANGES,
+    READ_COLUMNS,
+    SIZE_COLUMNS,
+    TEXT_COLUMNS,
+)
 
 BLOCK_BYTES = 1 << 20
 CHUNK_ROWS = 1 << 17
@@ -36,8 +44,11 @@ def _quote(data: bytes) -> str:
 
 
 def _line_error(path: Path, row: int, text: bytes) -> DataError:
-  return DataError(path, f"line longer than {MAX_LINE_BYTES} bytes, not a highD row "
-                   f"(starts {_quote(text)})", row=row)
+  return DataError(
+      path,
+      f"line longer than {MAX_LINE_BYTES} bytes, not a highD row " f"(starts {_quote(text)})",
+      row=row,
+  )
 
 
 def _check_block(path: Path, block: np.ndarray, state: tuple, header: int | None) -> tuple:
@@ -57,22 +68,23 @@ def _check_block(path: Path, block: np.ndarray, state: tuple, header: int | None
   count[0] += fields
   starts = np.r_[0, ends[:-1] + 1]
   for i in np.flatnonzero(length > MAX_LINE_BYTES)[:1]:
-    raise _line_error(path, line + i, block[starts[i]:ends[i]].tobytes())
+    raise _line_error(path, line + i, block[starts[i] : ends[i]].tobytes())
   header = int(count[0]) if header is None else header
   for i in np.flatnonzero(count > header)[:1]:
     raise DataError(path, f"{count[i]} fields, the header has {header}", row=line + i)
   tail = len(block) - ends[-1] - 1
   if tail > MAX_LINE_BYTES:
-    raise _line_error(path, line + len(ends), block[ends[-1] + 1:].tobytes())
+    raise _line_error(path, line + len(ends), block[ends[-1] + 1 :].tobytes())
   return line + len(ends), tail, int(commas[-1] - commas[ends[-1]])
 
 
-def _bad_byte(path: Path, message: str, data: bytes, at: int, line: int,
-              header: list[str]) -> DataError:
+def _bad_byte(
+    path: Path, message: str, data: bytes, at: int, line: int, header: list[str]
+) -> DataError:
   """DataError `message` at byte `at` of `data` (the text from the start of line `line`
   on), naming the line and the column of the byte (`DataError` cuts a long name)."""
   before = data[:at]
-  row, field = line + before.count(b"\n"), before[before.rfind(b"\n") + 1:].count(b",")
+  row, field = line + before.count(b"\n"), before[before.rfind(b"\n") + 1 :].count(b",")
   column = header[field] if field < len(header) else None
   return DataError(path, message, row=row, column=column)
 
@@ -81,36 +93,44 @@ def scan(path: Path) -> list[str]:
   """Streams `path` once (module docstring); returns its header's column names."""
   size = path.stat().st_size
   if size > MAX_FILE_BYTES:
-    raise DataError(path, f"{size} bytes, more than any highD recording "
-                    f"({MAX_FILE_BYTES} at most)")
+    raise DataError(
+        path, f"{size} bytes, more than any highD recording " f"({MAX_FILE_BYTES} at most)"
+    )
   decoder = codecs.getincrementaldecoder("utf-8")()
   state, head, current = (1, 0, 0), b"", b""  # current: the bytes of line state[0] so far
   with path.open("rb") as f:
     while block := f.read(BLOCK_BYTES):
       line = state[0]
-      head += block[:MAX_LINE_BYTES + 1] if line == 1 else b""
+      head += block[: MAX_LINE_BYTES + 1] if line == 1 else b""
       nul = block.find(b"\0")
       if nul >= 0:
-        raise _bad_byte(path, "NUL byte: a binary file, not CSV text", current + block,
-                        len(current) + nul, line, _header(head))
+        raise _bad_byte(
+            path,
+            "NUL byte: a binary file, not CSV text",
+            current + block,
+            len(current) + nul,
+            line,
+            _header(head),
+        )
       pending = decoder.getstate()[0]
       try:
         decoder.decode(block)
       except UnicodeDecodeError as err:
         at = len(current) - len(pending) + err.start
-        raise _bad_byte(path, "not UTF-8 text", current + block, at, line,
-                        _header(head)) from err
-      state = _check_block(path, np.frombuffer(block, np.uint8), state,
-                           None if line == 1 else len(_header(head)))
+        raise _bad_byte(path, "not UTF-8 text", current + block, at, line, _header(head)) from err
+      state = _check_block(
+          path, np.frombuffer(block, np.uint8), state, None if line == 1 else len(_header(head))
+      )
       cut = block.rfind(b"\n")
-      current = block[cut + 1:] if cut >= 0 else current + block
+      current = block[cut + 1 :] if cut >= 0 else current + block
       if state[0] > MAX_ROWS + 1:
         raise DataError(path, f"more than {MAX_ROWS} rows, more than any highD recording")
   try:
     decoder.decode(b"", final=True)
   except UnicodeDecodeError as err:
-    raise _bad_byte(path, "not UTF-8 text", current, len(current) - 1, state[0],
-                    _header(head)) from err
+    raise _bad_byte(
+        path, "not UTF-8 text", current, len(current) - 1, state[0], _header(head)
+    ) from err
   return _header(head)
 
 
@@ -140,8 +160,9 @@ def _cell_problems(chunk: pd.DataFrame, name: str, bounds) -> tuple[np.ndarray, 
     return values.to_numpy(object), found if bad.any() else None
   if pd.api.types.is_bool_dtype(values):  # pandas reads TRUE / false as booleans
     values = values.astype(str)
-  numbers = values if pd.api.types.is_numeric_dtype(values) else pd.to_numeric(
-      values, errors="coerce")
+  numbers = (
+      values if pd.api.types.is_numeric_dtype(values) else pd.to_numeric(values, errors="coerce")
+  )
   x = numbers.to_numpy(np.float64)
   text = np.isnan(x) & original.notna().to_numpy()
   bad = text | ~np.isfinite(x) | _outside(name, x, bounds)
@@ -180,9 +201,16 @@ def _outside(name: str, values: np.ndarray, bounds) -> np.ndarray:
 def _chunks(path: Path, columns: list[str]):
   """The data rows of `path` in DataFrames of `CHUNK_ROWS` rows (index: 0-based data row;
   blank lines kept as empty rows so that row numbers stay the file's lines)."""
-  return pd.read_csv(path, usecols=columns, dtype={c: str for c in TEXT_COLUMNS},
-                     skipinitialspace=True, skip_blank_lines=False, quoting=csv.QUOTE_NONE,
-                     encoding="utf-8", chunksize=CHUNK_ROWS)
+  return pd.read_csv(
+      path,
+      usecols=columns,
+      dtype={c: str for c in TEXT_COLUMNS},
+      skipinitialspace=True,
+      skip_blank_lines=False,
+      quoting=csv.QUOTE_NONE,
+      encoding="utf-8",
+      chunksize=CHUNK_ROWS,
+  )
 
 
 def _problems_and_columns(path: Path, kind: str) -> tuple[dict, dict, int]:
@@ -196,16 +224,18 @@ def _problems_and_columns(path: Path, kind: str) -> tuple[dict, dict, int]:
     filled = chunk.index[nonblank[-1]] + 1 if len(nonblank) else filled
     rows = chunk.index[-1] + 1
     for name in COLUMNS[kind]:
-      values, found = _cell_problems(chunk, name,
-                                     RANGES[kind].get(name, (-ABSURD, ABSURD, False)))
+      values, found = _cell_problems(chunk, name, RANGES[kind].get(name, (-ABSURD, ABSURD, False)))
       if name in kept:
         kept[name].append(values)
       if found is not None:
         first = problems.setdefault(name, _Problem(*found[:2]))
         first.count += found[2]
   blank_tail = rows - filled  # trailing blank lines: a bad (empty) cell in every column
-  problems = {name: dataclasses.replace(p, count=p.count - blank_tail)
-              for name, p in problems.items() if p.row < filled}
+  problems = {
+      name: dataclasses.replace(p, count=p.count - blank_tail)
+      for name, p in problems.items()
+      if p.row < filled
+  }
   columns = {name: np.concatenate(v)[:filled] for name, v in kept.items()} if filled else {}
   return problems, columns, filled
 
@@ -222,8 +252,9 @@ def read_table(path: Path, kind: str) -> pd.DataFrame:
   header = scan(path)
   for name in COLUMNS[kind]:
     if name not in header:
-      raise DataError(path, f"missing column (header has {_short(header, 400)})", row=1,
-                      column=name)
+      raise DataError(
+          path, f"missing column (header has {_short(header, 400)})", row=1, column=name
+      )
   try:
     problems, columns, rows = _problems_and_columns(path, kind)
   except pd.errors.ParserError as err:  # what `scan` did not catch
@@ -238,8 +269,14 @@ def read_table(path: Path, kind: str) -> pd.DataFrame:
     if name in READ_COLUMNS[kind]:
       raise DataError(path, p.message, row=p.row + 2, column=name)
     cells = f"{p.count} cells of this column are bad" if p.count > 1 else "the only bad cell"
-    unread.append(DataWarning(path, f"{p.message} ({cells}); the column is not read, the "
-                              "recording is used", row=p.row + 2, column=name))
+    unread.append(
+        DataWarning(
+            path,
+            f"{p.message} ({cells}); the column is not read, the " "recording is used",
+            row=p.row + 2,
+            column=name,
+        )
+    )
   for warning in unread:
     warnings.warn(warning, stacklevel=3)
   return pd.DataFrame(columns)

@@ -5,30 +5,92 @@ pipeline reads (`READ_COLUMNS`, checked strictly) and the ranges of their values
 from cvmdx_jax import constants
 
 TRACKS_COLUMNS = (
-    "frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity", "xAcceleration",
-    "yAcceleration", "frontSightDistance", "backSightDistance", "dhw", "thw", "ttc",
-    "precedingXVelocity", "precedingId", "followingId", "leftPrecedingId", "leftAlongsideId",
-    "leftFollowingId", "rightPrecedingId", "rightAlongsideId", "rightFollowingId", "laneId")
+    "frame",
+    "id",
+    "x",
+    "y",
+    "width",
+    "height",
+    "xVelocity",
+    "yVelocity",
+    "xAcceleration",
+    "yAcceleration",
+    "frontSightDistance",
+    "backSightDistance",
+    "dhw",
+    "thw",
+    "ttc",
+    "precedingXVelocity",
+    "precedingId",
+    "followingId",
+    "leftPrecedingId",
+    "leftAlongsideId",
+    "leftFollowingId",
+    "rightPrecedingId",
+    "rightAlongsideId",
+    "rightFollowingId",
+    "laneId",
+)
 TRACKS_META_COLUMNS = (
-    "id", "width", "height", "initialFrame", "finalFrame", "numFrames", "class",
-    "drivingDirection", "traveledDistance", "minXVelocity", "maxXVelocity", "meanXVelocity",
-    "minDHW", "minTHW", "minTTC", "numLaneChanges")
+    "id",
+    "width",
+    "height",
+    "initialFrame",
+    "finalFrame",
+    "numFrames",
+    "class",
+    "drivingDirection",
+    "traveledDistance",
+    "minXVelocity",
+    "maxXVelocity",
+    "meanXVelocity",
+    "minDHW",
+    "minTHW",
+    "minTTC",
+    "numLaneChanges",
+)
 RECORDING_META_COLUMNS = (
-    "id", "frameRate", "locationId", "speedLimit", "month", "weekDay", "startTime", "duration",
-    "totalDrivenDistance", "totalDrivenTime", "numVehicles", "numCars", "numTrucks",
-    "upperLaneMarkings", "lowerLaneMarkings")
-TEXT_COLUMNS = ("class", "month", "weekDay", "startTime", "upperLaneMarkings",
-                "lowerLaneMarkings")
+    "id",
+    "frameRate",
+    "locationId",
+    "speedLimit",
+    "month",
+    "weekDay",
+    "startTime",
+    "duration",
+    "totalDrivenDistance",
+    "totalDrivenTime",
+    "numVehicles",
+    "numCars",
+    "numTrucks",
+    "upperLaneMarkings",
+    "lowerLaneMarkings",
+)
+TEXT_COLUMNS = ("class", "month", "weekDay", "startTime", "upperLaneMarkings", "lowerLaneMarkings")
 # Neighbour columns in `constants.VEHICLE_SLOTS[1:]` order.
 NEIGHBOUR_COLUMNS = tuple(f"{slot}Id" for slot in constants.VEHICLE_SLOTS[1:])
-COLUMNS = {"tracks": TRACKS_COLUMNS, "tracksMeta": TRACKS_META_COLUMNS,
-           "recordingMeta": RECORDING_META_COLUMNS}
+COLUMNS = {
+    "tracks": TRACKS_COLUMNS,
+    "tracksMeta": TRACKS_META_COLUMNS,
+    "recordingMeta": RECORDING_META_COLUMNS,
+}
 # The columns `read_recording` uses (checked strictly); the others only draw DataWarnings.
 READ_COLUMNS = {
-    "tracks": ("frame", "id", "x", "y", "width", "height", "xVelocity", "yVelocity",
-               "laneId", *NEIGHBOUR_COLUMNS),
+    "tracks": (
+        "frame",
+        "id",
+        "x",
+        "y",
+        "width",
+        "height",
+        "xVelocity",
+        "yVelocity",
+        "laneId",
+        *NEIGHBOUR_COLUMNS,
+    ),
     "tracksMeta": ("id", "initialFrame", "finalFrame", "numFrames", "drivingDirection"),
-    "recordingMeta": ("frameRate", "upperLaneMarkings", "lowerLaneMarkings")}
+    "recordingMeta": ("frameRate", "upperLaneMarkings", "lowerLaneMarkings"),
+}
 
 ABSURD = 1e9  # bound on every numeric cell
 MAX_ID = 1_000_000  # track ids index dense per-id arrays
@@ -39,15 +101,28 @@ _ACCEL = (-20.0, 20.0)
 # READ_COLUMNS a value out of range is a warning.
 RANGES = {
     "tracks": {
-        "frame": (0, MAX_FRAME, True), "id": (1, MAX_ID, True), "x": (*POSITION, False),
-        "y": (*POSITION, False), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
-        "xVelocity": (-100.0, 100.0, False), "yVelocity": (-20.0, 20.0, False),
-        "xAcceleration": (*_ACCEL, False), "yAcceleration": (*_ACCEL, False),
-        "laneId": (1, 100, True), **{c: (0, MAX_ID, True) for c in NEIGHBOUR_COLUMNS}},
+        "frame": (0, MAX_FRAME, True),
+        "id": (1, MAX_ID, True),
+        "x": (*POSITION, False),
+        "y": (*POSITION, False),
+        "width": (*_LENGTH, False),
+        "height": (*_WIDTH, False),
+        "xVelocity": (-100.0, 100.0, False),
+        "yVelocity": (-20.0, 20.0, False),
+        "xAcceleration": (*_ACCEL, False),
+        "yAcceleration": (*_ACCEL, False),
+        "laneId": (1, 100, True),
+        **{c: (0, MAX_ID, True) for c in NEIGHBOUR_COLUMNS},
+    },
     "tracksMeta": {
-        "id": (1, MAX_ID, True), "width": (*_LENGTH, False), "height": (*_WIDTH, False),
-        "initialFrame": (0, MAX_FRAME, True), "finalFrame": (0, MAX_FRAME, True),
-        "numFrames": (1, MAX_FRAME, True), "drivingDirection": (1, 2, True)},
+        "id": (1, MAX_ID, True),
+        "width": (*_LENGTH, False),
+        "height": (*_WIDTH, False),
+        "initialFrame": (0, MAX_FRAME, True),
+        "finalFrame": (0, MAX_FRAME, True),
+        "numFrames": (1, MAX_FRAME, True),
+        "drivingDirection": (1, 2, True),
+    },
     "recordingMeta": {"frameRate": (1, 1000, True)},
 }
 SIZE_COLUMNS = ("width", "height")

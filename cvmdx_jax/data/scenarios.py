@@ -84,8 +84,14 @@ class Scenarios:
   def as_dict(self) -> dict:
     return {name: getattr(self, name) for name in FIELDS}
 
-  def validate(self, source: str = "scenarios", fields=tuple(FIELDS), *, dtypes: bool = True,
-               allow_empty: bool = True) -> "Scenarios":
+  def validate(
+      self,
+      source: str = "scenarios",
+      fields=tuple(FIELDS),
+      *,
+      dtypes: bool = True,
+      allow_empty: bool = True,
+  ) -> "Scenarios":
     """Checks `fields` against the contract; raises ValueError naming source and field.
 
     Args:
@@ -111,14 +117,17 @@ class Scenarios:
       except (ValueError, TypeError) as e:  # ragged lists, ...
         raise UserError(f"{source}: field '{name}' is not an array ({e})") from None
       if value.dtype.kind not in "biuf":  # text, objects, complex: no real numbers
-        raise UserError(f"{source}: field '{name}' has dtype {value.dtype}, expected "
-                        "real numbers")
+        raise UserError(
+            f"{source}: field '{name}' has dtype {value.dtype}, expected " "real numbers"
+        )
       if value.shape != (m, *shape):
-        raise UserError(f"{source}: field '{name}' has shape {value.shape}, "
-                         f"expected {(m, *shape)}")
+        raise UserError(
+            f"{source}: field '{name}' has shape {value.shape}, " f"expected {(m, *shape)}"
+        )
       if dtypes and value.dtype != dtype:
-        raise UserError(f"{source}: field '{name}' has dtype {value.dtype}, "
-                         f"expected {np.dtype(dtype)}")
+        raise UserError(
+            f"{source}: field '{name}' has dtype {value.dtype}, " f"expected {np.dtype(dtype)}"
+        )
       if value.dtype.kind == "f" and not np.all(np.isfinite(value)):
         bad = int(np.argwhere(~np.isfinite(value).reshape(m, -1).all(-1))[0, 0])
         raise UserError(f"{source}: field '{name}' holds NaN/inf (scenario {bad})")
@@ -161,8 +170,9 @@ def from_arrays(**arrays) -> Scenarios:
   out = {}
   for name, (_, dtype) in FIELDS.items():
     value = arrays.get(name)
-    out[name] = (np.full((m,), -1, dtype) if value is None
-                 else np.asarray(value).astype(dtype, copy=False))
+    out[name] = (
+        np.full((m,), -1, dtype) if value is None else np.asarray(value).astype(dtype, copy=False)
+    )
   return Scenarios(**out).validate()
 
 
@@ -171,5 +181,4 @@ def concatenate(parts) -> Scenarios:
   parts = list(parts)
   if not parts:
     raise ValueError("concatenate: empty sequence of Scenarios")
-  return Scenarios(**{name: np.concatenate([getattr(p, name) for p in parts])
-                      for name in FIELDS})
+  return Scenarios(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in FIELDS})

@@ -23,9 +23,16 @@ from cvmdx_jax.data import errors, sumo_export, sumo_network, sumo_plan
 
 PLANS_FILE = "plans.json"
 
-_FCD_COLUMNS = {"timestep_time": "time", "vehicle_id": "id", "vehicle_x": "x",
-                "vehicle_y": "y", "vehicle_angle": "angle", "vehicle_type": "type",
-                "vehicle_speed": "speed", "vehicle_acceleration": "acc"}
+_FCD_COLUMNS = {
+    "timestep_time": "time",
+    "vehicle_id": "id",
+    "vehicle_x": "x",
+    "vehicle_y": "y",
+    "vehicle_angle": "angle",
+    "vehicle_type": "type",
+    "vehicle_speed": "speed",
+    "vehicle_acceleration": "acc",
+}
 
 
 def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
@@ -37,14 +44,38 @@ def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
   routes = sumo_network.write_routes(cfg, plan, work_dir, name)
   fcd = work_dir / f"{name}.fcd.csv"
   command = [
-      str(sumo_network.sumo_program("sumo")), "-n", str(net), "-r", str(routes),
-      "--step-length", f"{constants.DT}", "--lateral-resolution", f"{cfg.lateral_resolution}",
-      "--seed", str(cfg.seed * 1000 + recording_id), "--begin", "0",
-      "--end", f"{cfg.warmup_s + plan.duration_s}", "--fcd-output", str(fcd),
-      "--fcd-output.acceleration", "true", "--output.format", "csv",
-      "--fcd-output.attributes", "x,y,angle,type,speed,acceleration",
-      "--no-step-log", "true", "--no-warnings", "true",
-      "--time-to-teleport", "-1", "--collision.action", "warn"]
+      str(sumo_network.sumo_program("sumo")),
+      "-n",
+      str(net),
+      "-r",
+      str(routes),
+      "--step-length",
+      f"{constants.DT}",
+      "--lateral-resolution",
+      f"{cfg.lateral_resolution}",
+      "--seed",
+      str(cfg.seed * 1000 + recording_id),
+      "--begin",
+      "0",
+      "--end",
+      f"{cfg.warmup_s + plan.duration_s}",
+      "--fcd-output",
+      str(fcd),
+      "--fcd-output.acceleration",
+      "true",
+      "--output.format",
+      "csv",
+      "--fcd-output.attributes",
+      "x,y,angle,type,speed,acceleration",
+      "--no-step-log",
+      "true",
+      "--no-warnings",
+      "true",
+      "--time-to-teleport",
+      "-1",
+      "--collision.action",
+      "warn",
+  ]
   result = subprocess.run(command, capture_output=True, text=True)
   if result.returncode != 0:
     raise RuntimeError(f"sumo failed for recording {recording_id}: {result.stderr[-2000:]}")
@@ -80,10 +111,14 @@ def make_recordings(cfg, out_dir) -> dict:
     # Processes, not threads: the pandas export holds the GIL. Spawned: the parent may
     # already run JAX's threads, which a fork would copy half-way.
     with concurrent.futures.ProcessPoolExecutor(
-        max(1, cfg.workers), mp_context=multiprocessing.get_context("spawn"),
-        initializer=_exit_on_sigterm) as pool:
-      futures = [pool.submit(_simulate_and_export, cfg, plan, Path(tmp), out_dir)
-                 for plan in plans.values()]
+        max(1, cfg.workers),
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_exit_on_sigterm,
+    ) as pool:
+      futures = [
+          pool.submit(_simulate_and_export, cfg, plan, Path(tmp), out_dir)
+          for plan in plans.values()
+      ]
       try:
         rows = [f.result() for f in futures]
       except BaseException:  # a failed recording, Ctrl-C, SIGTERM (cli.run): stop the rest

@@ -17,9 +17,9 @@ import numpy as np
 import pandas as pd
 
 from cvmdx_jax import constants
+from cvmdx_jax.data import highd, sumo_network
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
-from cvmdx_jax.data import highd, sumo_network
 
 _KEY_SHIFT = 26  # bits of the centimetre position in the neighbour search key
 
@@ -45,11 +45,22 @@ def _tracks_from_fcd(fcd: pd.DataFrame, cfg, plan) -> pd.DataFrame:
   frame = np.round(fcd["time"].to_numpy() / constants.DT).astype(np.int64)
   frame -= int(round(cfg.warmup_s / constants.DT)) - 1
   speed, acc = fcd["speed"].to_numpy(np.float64), fcd["acc"].to_numpy(np.float64)
-  out = pd.DataFrame({
-      "frame": frame, "sumo_id": fcd["id"].to_numpy(), "xc": cx - cfg.section_start_m,
-      "yc": top - cy, "width": length, "height": width, "xVelocity": speed * hx,
-      "yVelocity": -speed * hy, "xAcceleration": acc * hx, "yAcceleration": -acc * hy,
-      "class": kind, "drivingDirection": np.where(hx < 0, 1, 2)})
+  out = pd.DataFrame(
+      {
+          "frame": frame,
+          "sumo_id": fcd["id"].to_numpy(),
+          "xc": cx - cfg.section_start_m,
+          "yc": top - cy,
+          "width": length,
+          "height": width,
+          "xVelocity": speed * hx,
+          "yVelocity": -speed * hy,
+          "xAcceleration": acc * hx,
+          "yAcceleration": -acc * hy,
+          "class": kind,
+          "drivingDirection": np.where(hx < 0, 1, 2),
+      }
+  )
   out = out[(frame >= 1) & (out["xc"] >= 0) & (out["xc"] <= cfg.section_length_m)]
   out = out.sort_values(["sumo_id", "frame"], kind="stable").reset_index(drop=True)
   sid, fr = out["sumo_id"].to_numpy(), out["frame"].to_numpy()
@@ -60,8 +71,9 @@ def _tracks_from_fcd(fcd: pd.DataFrame, cfg, plan) -> pd.DataFrame:
   out = out[run == first_run]  # the first contiguous stretch of each vehicle
   first_frame = out.groupby("sumo_id", sort=False)["frame"].transform("min")
   order = out.assign(f0=first_frame).sort_values(["f0", "sumo_id", "frame"], kind="stable")
-  new_id = np.cumsum(np.r_[True, order["sumo_id"].to_numpy()[1:]
-                           != order["sumo_id"].to_numpy()[:-1]])
+  new_id = np.cumsum(
+      np.r_[True, order["sumo_id"].to_numpy()[1:] != order["sumo_id"].to_numpy()[:-1]]
+  )
   return order.assign(id=new_id).drop(columns=["f0", "sumo_id"]).reset_index(drop=True)
 
 
@@ -89,8 +101,10 @@ def _neighbours(t: pd.DataFrame) -> dict:
   rank[order] = np.arange(n)
   ahead, ok_a = pick(rank + 1, group)
   behind, ok_b = pick(rank - 1, group)
-  out = {"precedingId": np.where(ok_a, ids[ahead], 0),
-         "followingId": np.where(ok_b, ids[behind], 0)}
+  out = {
+      "precedingId": np.where(ok_a, ids[ahead], 0),
+      "followingId": np.where(ok_b, ids[behind], 0),
+  }
   gap = np.where(ok_a, s_sorted[ahead] - s - half_sorted[ahead] - half, 0.0)
   left_step = np.where(sign > 0, -1, 1)  # laneId of the left lane = laneId + left_step
   for side, step in (("left", left_step), ("right", -left_step)):
@@ -103,12 +117,15 @@ def _neighbours(t: pd.DataFrame) -> dict:
     ov_a, ov_b = overlaps(a1, ok1), overlaps(b1, okb1)
     closer_a = np.abs(s_sorted[a1] - s) <= np.abs(s_sorted[b1] - s)
     along = np.where(ov_a & (closer_a | ~ov_b), ids[a1], np.where(ov_b, ids[b1], 0))
-    pre = np.where(ov_a, np.where(ok2 & ~overlaps(a2, ok2), ids[a2], 0),
-                   np.where(ok1, ids[a1], 0))
-    fol = np.where(ov_b, np.where(okb2 & ~overlaps(b2, okb2), ids[b2], 0),
-                   np.where(okb1, ids[b1], 0))
+    pre = np.where(ov_a, np.where(ok2 & ~overlaps(a2, ok2), ids[a2], 0), np.where(ok1, ids[a1], 0))
+    fol = np.where(
+        ov_b, np.where(okb2 & ~overlaps(b2, okb2), ids[b2], 0), np.where(okb1, ids[b1], 0)
+    )
     out[f"{side}PrecedingId"], out[f"{side}AlongsideId"], out[f"{side}FollowingId"] = (
-        pre, along, fol)
+        pre,
+        along,
+        fol,
+    )
   out["gap"] = gap
   out["ahead_row"] = np.where(ok_a, order[ahead], -1)
   return out
@@ -149,8 +166,11 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
   closing = speed - np.abs(pre_vx)
   t["dhw"] = np.where(has, nb["gap"], 0.0)
   t["thw"] = np.where(has & (speed > 0.1), nb["gap"] / np.maximum(speed, 0.1), 0.0)
-  t["ttc"] = np.where(has & (np.abs(closing) > 1e-3),
-                      nb["gap"] / np.where(np.abs(closing) > 1e-3, closing, 1.0), 0.0)
+  t["ttc"] = np.where(
+      has & (np.abs(closing) > 1e-3),
+      nb["gap"] / np.where(np.abs(closing) > 1e-3, closing, 1.0),
+      0.0,
+  )
   t["precedingXVelocity"] = pre_vx
   for column in highd.NEIGHBOUR_COLUMNS:
     t[column] = nb[column]
@@ -160,28 +180,49 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
   g = t.groupby("id", sort=True)
   abs_vx = t["xVelocity"].abs().groupby(t["id"])
   positive = lambda col: t[col].where(t[col] > 0).groupby(t["id"]).min().fillna(-1)
-  meta = pd.DataFrame({
-      "id": g["id"].first(), "width": g["width"].first(), "height": g["height"].first(),
-      "initialFrame": g["frame"].min(), "finalFrame": g["frame"].max(),
-      "numFrames": g["frame"].count(), "class": g["class"].first(),
-      "drivingDirection": g["drivingDirection"].first(),
-      "traveledDistance": (g["x"].last() - g["x"].first()).abs(),
-      "minXVelocity": abs_vx.min(), "maxXVelocity": abs_vx.max(),
-      "meanXVelocity": abs_vx.mean(), "minDHW": positive("dhw"), "minTHW": positive("thw"),
-      "minTTC": positive("ttc"),
-      "numLaneChanges": g["laneId"].agg(lambda x: int(np.count_nonzero(np.diff(x.to_numpy())))),
-  }).round(2)
+  meta = pd.DataFrame(
+      {
+          "id": g["id"].first(),
+          "width": g["width"].first(),
+          "height": g["height"].first(),
+          "initialFrame": g["frame"].min(),
+          "finalFrame": g["frame"].max(),
+          "numFrames": g["frame"].count(),
+          "class": g["class"].first(),
+          "drivingDirection": g["drivingDirection"].first(),
+          "traveledDistance": (g["x"].last() - g["x"].first()).abs(),
+          "minXVelocity": abs_vx.min(),
+          "maxXVelocity": abs_vx.max(),
+          "meanXVelocity": abs_vx.mean(),
+          "minDHW": positive("dhw"),
+          "minTHW": positive("thw"),
+          "minTTC": positive("ttc"),
+          "numLaneChanges": g["laneId"].agg(lambda x: int(np.count_nonzero(np.diff(x.to_numpy())))),
+      }
+  ).round(2)
   num_frames = int(round(plan.duration_s * constants.FRAME_RATE_HZ))
   fmt = lambda values: ";".join(f"{v:.2f}" for v in values)
-  rec_meta = pd.DataFrame([{
-      "id": recording_id, "frameRate": constants.FRAME_RATE_HZ, "locationId": 0,
-      "speedLimit": round(plan.road.speed_limit_ms, 2), "month": "01.2000", "weekDay": "Mon",
-      "startTime": "00:00", "duration": num_frames * constants.DT,
-      "totalDrivenDistance": meta["traveledDistance"].sum(),
-      "totalDrivenTime": meta["numFrames"].sum() * constants.DT,
-      "numVehicles": len(meta), "numCars": int((meta["class"] == "Car").sum()),
-      "numTrucks": int((meta["class"] == "Truck").sum()),
-      "upperLaneMarkings": fmt(upper), "lowerLaneMarkings": fmt(lower)}])
+  rec_meta = pd.DataFrame(
+      [
+          {
+              "id": recording_id,
+              "frameRate": constants.FRAME_RATE_HZ,
+              "locationId": 0,
+              "speedLimit": round(plan.road.speed_limit_ms, 2),
+              "month": "01.2000",
+              "weekDay": "Mon",
+              "startTime": "00:00",
+              "duration": num_frames * constants.DT,
+              "totalDrivenDistance": meta["traveledDistance"].sum(),
+              "totalDrivenTime": meta["numFrames"].sum() * constants.DT,
+              "numVehicles": len(meta),
+              "numCars": int((meta["class"] == "Car").sum()),
+              "numTrucks": int((meta["class"] == "Truck").sum()),
+              "upperLaneMarkings": fmt(upper),
+              "lowerLaneMarkings": fmt(lower),
+          }
+      ]
+  )
   out_dir.mkdir(parents=True, exist_ok=True)
   paths = highd.recording_paths(out_dir, recording_id)
   _write_csv(tracks, paths["tracks"])

@@ -14,9 +14,16 @@ from pathlib import Path
 import numpy as np
 
 # DriverType field -> SUMO vType attribute, for the car-following and lane-change parameters.
-_VTYPE_ATTRIBUTES = (("accel", "accel"), ("decel", "decel"), ("sigma", "sigma"), ("tau", "tau"),
-                     ("lc_speed_gain", "lcSpeedGain"), ("lc_keep_right", "lcKeepRight"),
-                     ("max_speed_lat", "maxSpeedLat"), ("lc_accel_lat", "lcAccelLat"))
+_VTYPE_ATTRIBUTES = (
+    ("accel", "accel"),
+    ("decel", "decel"),
+    ("sigma", "sigma"),
+    ("tau", "tau"),
+    ("lc_speed_gain", "lcSpeedGain"),
+    ("lc_keep_right", "lcKeepRight"),
+    ("max_speed_lat", "maxSpeedLat"),
+    ("lc_accel_lat", "lcAccelLat"),
+)
 
 
 def sumo_program(name: str) -> Path:
@@ -29,9 +36,11 @@ def sumo_program(name: str) -> Path:
   try:
     import sumo  # pylint: disable=import-outside-toplevel
   except ImportError:
-    raise ImportError("the SUMO source needs SUMO's programs: install eclipse-sumo (`make "
-                      "install` does; pip install eclipse-sumo), or read highD "
-                      "(source='highd')") from None
+    raise ImportError(
+        "the SUMO source needs SUMO's programs: install eclipse-sumo (`make "
+        "install` does; pip install eclipse-sumo), or read highD "
+        "(source='highd')"
+    ) from None
   return Path(sumo.SUMO_HOME) / "bin" / name
 
 
@@ -60,26 +69,49 @@ def write_network(cfg, road, work_dir: Path, name: str = "highway") -> Path:
       "<nodes>\n"
       f'  <node id="e0" x="0" y="{-half}"/>\n  <node id="e1" x="{length}" y="{-half}"/>\n'
       f'  <node id="w0" x="{length}" y="{half}"/>\n  <node id="w1" x="0" y="{half}"/>\n'
-      "</nodes>\n")
-  lanes = (f'numLanes="{road.lanes}" speed="{road.speed_limit_ms:.4f}" '
-           f'width="{road.lane_width_m}" spreadType="right"')
+      "</nodes>\n"
+  )
+  lanes = (
+      f'numLanes="{road.lanes}" speed="{road.speed_limit_ms:.4f}" '
+      f'width="{road.lane_width_m}" spreadType="right"'
+  )
   edges.write_text(
       "<edges>\n"
       f'  <edge id="E" from="e0" to="e1" {lanes}/>\n'
       f'  <edge id="W" from="w0" to="w1" {lanes}/>\n'
-      "</edges>\n")
-  subprocess.run([str(sumo_program("netconvert")), "-n", str(nodes), "-e", str(edges),
-                  "-o", str(net), "--no-turnarounds", "true", "--no-warnings", "true"],
-                 check=True, capture_output=True)
+      "</edges>\n"
+  )
+  subprocess.run(
+      [
+          str(sumo_program("netconvert")),
+          "-n",
+          str(nodes),
+          "-e",
+          str(edges),
+          "-o",
+          str(net),
+          "--no-turnarounds",
+          "true",
+          "--no-warnings",
+          "true",
+      ],
+      check=True,
+      capture_output=True,
+  )
   return net
 
 
 def _vtype(t, car_following: str) -> str:
   sumo_class = "truck" if t.vclass == "Truck" else "passenger"
-  attributes = [f'id="{t.name}"', f'vClass="{sumo_class}"', f'probability="{t.probability:.4f}"',
-                f'length="{t.length_m:.2f}"', f'width="{t.width_m:.2f}"',
-                f'carFollowModel="{car_following}"',
-                f'speedFactor="normc({t.speed_factor:.3f},{t.speed_dev:.3f},0.6,1.5)"']
+  attributes = [
+      f'id="{t.name}"',
+      f'vClass="{sumo_class}"',
+      f'probability="{t.probability:.4f}"',
+      f'length="{t.length_m:.2f}"',
+      f'width="{t.width_m:.2f}"',
+      f'carFollowModel="{car_following}"',
+      f'speedFactor="normc({t.speed_factor:.3f},{t.speed_dev:.3f},0.6,1.5)"',
+  ]
   if t.desired_max_speed_ms:
     attributes.append(f'desiredMaxSpeed="{t.desired_max_speed_ms:.3f}"')
   attributes += [f'{attr}="{getattr(t, field):.3f}"' for field, attr in _VTYPE_ATTRIBUTES]
@@ -97,7 +129,8 @@ def write_routes(cfg, plan, work_dir: Path, name: str) -> Path:
     lines.append(
         f'  <flow id="f{edge}" type="mix" begin="0" end="{end}" period="exp({rate:.5f})" '
         f'from="{edge}" to="{edge}" departLane="random" departSpeed="desired" '
-        'departPosLat="center"/>')
+        'departPosLat="center"/>'
+    )
   lines.append("</routes>")
   path = work_dir / f"{name}.rou.xml"
   path.write_text("\n".join(lines) + "\n")

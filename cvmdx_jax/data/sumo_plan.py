@@ -115,9 +115,15 @@ def _types(rng, ranges, vclass: str, count: int, share: float, spread: float) ->
       values[key] = _uniform(rng, ranges[key], key in _LOG_SCALE, u)
     cap = values.pop("desired_max_speed_kmh", None)
     try:
-      out.append(DriverType(
-          name=f"{vclass.lower()}{k}", vclass=vclass, probability=share / count,
-          desired_max_speed_ms=cap / 3.6 if cap else 0.0, **values))
+      out.append(
+          DriverType(
+              name=f"{vclass.lower()}{k}",
+              vclass=vclass,
+              probability=share / count,
+              desired_max_speed_ms=cap / 3.6 if cap else 0.0,
+              **values,
+          )
+      )
     except TypeError as err:
       raise UserError(f"sumo.{vclass.lower()}: {err} (expected the DriverType fields)") from err
   return out
@@ -141,19 +147,25 @@ def draw(cfg, recording_id: int, split: str, index: int) -> RecordingPlan:
   car_following = str(cfg.car_following[rng.integers(len(cfg.car_following))])
   if car_following not in CAR_FOLLOWING:
     raise UserError(f"sumo.car_following: '{car_following}' is not one of {CAR_FOLLOWING}")
-  types = (_types(rng, cfg.car, "Car", cfg.car_types, 1.0 - truck_share, cfg.type_spread)
-           + _types(rng, cfg.truck, "Truck", cfg.truck_types, truck_share, cfg.type_spread))
-  return RecordingPlan(recording_id, split, duration, road, flow, truck_share, car_following,
-                       tuple(types))
+  types = _types(rng, cfg.car, "Car", cfg.car_types, 1.0 - truck_share, cfg.type_spread) + _types(
+      rng, cfg.truck, "Truck", cfg.truck_types, truck_share, cfg.type_spread
+  )
+  return RecordingPlan(
+      recording_id, split, duration, road, flow, truck_share, car_following, tuple(types)
+  )
 
 
 def plans(cfg) -> dict:
   """{recording id: RecordingPlan} of every recording of `cfg` (the `sumo` section)."""
-  return {rid: draw(cfg, rid, split, index)
-          for split, ids in split_ids(cfg).items() for index, rid in enumerate(ids)}
+  return {
+      rid: draw(cfg, rid, split, index)
+      for split, ids in split_ids(cfg).items()
+      for index, rid in enumerate(ids)
+  }
 
 
 def write_plans(plan_by_id: dict, path) -> None:
   """Writes the plans as JSON (a record of what each recording simulates)."""
-  atomic.write_text(path, json.dumps({str(k): p.to_json() for k, p in plan_by_id.items()},
-                                     indent=1) + "\n")
+  atomic.write_text(
+      path, json.dumps({str(k): p.to_json() for k, p in plan_by_id.items()}, indent=1) + "\n"
+  )

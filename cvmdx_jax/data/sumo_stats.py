@@ -43,22 +43,29 @@ def recording_stats(data_dir, recording_id: int) -> dict:
   kmh = meta["meanXVelocity"].abs().to_numpy() * 3.6
   trucks = (meta["class"] == "Truck").to_numpy()
   durations = lane_change_durations(highd.read_recording(data_dir, recording_id))
-  return {"vehicles": int(len(meta)), "truck_share": round(float(trucks.mean()), 3),
-          "car_kmh_p10_50_90": _percentiles(kmh[~trucks]),
-          "truck_kmh_p10_50_90": _percentiles(kmh[trucks]),
-          "lane_changes_per_vehicle": round(float(meta["numLaneChanges"].mean()), 3),
-          "lane_change_s_p10_50_90": _percentiles(durations),
-          "lane_changes_timed": int(len(durations))}
+  return {
+      "vehicles": int(len(meta)),
+      "truck_share": round(float(trucks.mean()), 3),
+      "car_kmh_p10_50_90": _percentiles(kmh[~trucks]),
+      "truck_kmh_p10_50_90": _percentiles(kmh[trucks]),
+      "lane_changes_per_vehicle": round(float(meta["numLaneChanges"].mean()), 3),
+      "lane_change_s_p10_50_90": _percentiles(durations),
+      "lane_changes_timed": int(len(durations)),
+  }
 
 
 def plan_columns(plan: dict) -> dict:
   """The road and traffic of a `plans.json` entry, in the units of the config."""
   road = plan["road"]
-  return {"split": plan["split"], "lanes": road["lanes"], "lane_width_m": road["lane_width_m"],
-          "speed_limit_kmh": round(road["speed_limit_ms"] * 3.6),
-          "flow_per_lane": round(plan["flow_per_lane"]),
-          "truck_share_set": round(plan["truck_share"], 2),
-          "car_following": plan["car_following"]}
+  return {
+      "split": plan["split"],
+      "lanes": road["lanes"],
+      "lane_width_m": road["lane_width_m"],
+      "speed_limit_kmh": round(road["speed_limit_ms"] * 3.6),
+      "flow_per_lane": round(plan["flow_per_lane"]),
+      "truck_share_set": round(plan["truck_share"], 2),
+      "car_following": plan["car_following"],
+  }
 
 
 def sumo_table(rec_dir) -> list:
@@ -68,5 +75,7 @@ def sumo_table(rec_dir) -> list:
     plans = json.loads((rec_dir / sumo.PLANS_FILE).read_text())
   except ValueError as e:
     raise DataError(rec_dir / sumo.PLANS_FILE, f"not valid JSON ({e})") from e
-  return [{"recording": int(rid), **plan_columns(plan), **recording_stats(rec_dir, int(rid))}
-          for rid, plan in sorted(plans.items(), key=lambda kv: int(kv[0]))]
+  return [
+      {"recording": int(rid), **plan_columns(plan), **recording_stats(rec_dir, int(rid))}
+      for rid, plan in sorted(plans.items(), key=lambda kv: int(kv[0]))
+  ]

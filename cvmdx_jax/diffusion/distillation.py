@@ -70,8 +70,15 @@ def ddim_update(x0, eps, abar_next):
   return param.q_sample(x0, eps, abar_next)
 
 
-def distilled_sample(v_fn, key, shape, schedule: Schedule, steps: int,
-                     clip_x0: float | None = None, x_T: jax.Array | None = None):
+def distilled_sample(
+    v_fn,
+    key,
+    shape,
+    schedule: Schedule,
+    steps: int,
+    clip_x0: float | None = None,
+    x_T: jax.Array | None = None,
+):
   """Deterministic DDIM over `distilled_timesteps` (S evaluations of `v_fn`).
 
   Args:

@@ -11,7 +11,6 @@ noisiest step, w_max at the last): `direction="official"` uses t -> T - t.
 index, without delta), for `samplers.official_ddim_sample`.
 """
 
-
 import jax.numpy as jnp
 import numpy as np
 
@@ -60,15 +59,17 @@ def cond_uncond_v_fn(model_fn, cond, null_cond):
   null = jnp.full_like(cond, null_cond)
 
   def fn(x_t, t):
-    v = model_fn(jnp.concatenate([x_t, x_t]), jnp.concatenate([t, t]),
-                 jnp.concatenate([cond, null]))
+    v = model_fn(
+        jnp.concatenate([x_t, x_t]), jnp.concatenate([t, t]), jnp.concatenate([cond, null])
+    )
     return tuple(jnp.split(v, 2))
 
   return fn
 
 
-def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
-                config: GuidanceConfig = GuidanceConfig()):
+def guided_v_fn(
+    model_fn, cond, null_cond, delta, schedule, config: GuidanceConfig = GuidanceConfig()
+):
   """Wraps a conditional v-model into a guided `v_fn(x_t, t)` for the samplers.
 
   Both branches run in one batched call. The eps combination is affine with
@@ -103,5 +104,6 @@ def guided_v_fn(model_fn, cond, null_cond, delta, schedule,
 
 def guided_eps(v_cond, v_uncond, x_t, abar, w, form: str = "paper"):
   """The guided eps exactly as the paper writes it (for tests and analysis)."""
-  return combine_eps(param.eps_from_v(x_t, v_cond, abar),
-                     param.eps_from_v(x_t, v_uncond, abar), w, form)
+  return combine_eps(
+      param.eps_from_v(x_t, v_cond, abar), param.eps_from_v(x_t, v_uncond, abar), w, form
+  )

@@ -7,8 +7,17 @@ from cvmdx_jax.diffusion import param
 from cvmdx_jax.diffusion.schedule import Schedule
 
 
-def v_loss(model_fn, x0, cond, key, schedule: Schedule, *, null_cond: int,
-           cond_drop_prob: float = 0.1, weight=None):
+def v_loss(
+    model_fn,
+    x0,
+    cond,
+    key,
+    schedule: Schedule,
+    *,
+    null_cond: int,
+    cond_drop_prob: float = 0.1,
+    weight=None,
+):
   """E_{t, eps} ||v - v_theta(x_t, t, c)||^2 with c -> null with probability p.
 
   Args:

@@ -38,8 +38,16 @@ def initial_noise(key, index: int, shape, x_T):
   return x_T
 
 
-def ddim_sample(v_fn, key, shape, schedule: Schedule, steps: int = 10, eta: float = 0.0,
-                clip_x0: float | None = None, x_T=None):
+def ddim_sample(
+    v_fn,
+    key,
+    shape,
+    schedule: Schedule,
+    steps: int = 10,
+    eta: float = 0.0,
+    clip_x0: float | None = None,
+    x_T=None,
+):
   """DDIM (Song et al. 2021) over S linearly spaced timesteps.
 
   x_prev = sqrt(abar_prev) x0 + sqrt(1 - abar_prev - s^2) eps + s z,
@@ -70,16 +78,18 @@ def ddim_sample(v_fn, key, shape, schedule: Schedule, steps: int = 10, eta: floa
     x0, eps = predict_x0_eps(v_fn, x_t, t, a_t, clip_x0)
     sigma = eta * jnp.sqrt((1.0 - a_prev) / (1.0 - a_t) * (1.0 - a_t / a_prev))
     noise = jax.random.normal(jax.random.fold_in(key, i), shape)
-    x_prev = (jnp.sqrt(a_prev) * x0 + jnp.sqrt(jnp.maximum(1.0 - a_prev - sigma**2, 0.0)) * eps
-              + sigma * noise)
+    x_prev = (
+        jnp.sqrt(a_prev) * x0
+        + jnp.sqrt(jnp.maximum(1.0 - a_prev - sigma**2, 0.0)) * eps
+        + sigma * noise
+    )
     return x_prev, None
 
   x0, _ = jax.lax.scan(body, x_T, (jnp.arange(steps), ts, abar_prev))
   return x0
 
 
-def ddpm_sample(v_fn, key, shape, schedule: Schedule, clip_x0: float | None = None,
-                x_T=None):
+def ddpm_sample(v_fn, key, shape, schedule: Schedule, clip_x0: float | None = None, x_T=None):
   """Ancestral DDPM (Ho et al. 2020) over all T steps with the posterior
   q(x_{t-1} | x_t, x0): mean = c1 x0 + c2 x_t, variance beta~_t
   = beta_t (1 - abar_{t-1}) / (1 - abar_t); no noise at t = 0. `x_T` as in DDIM.
@@ -111,9 +121,18 @@ def _rounded(p):
   return jnp.where(jnp.isnan(p), jnp.nan, p)
 
 
-def official_ddim_sample(branches_fn, key, shape, schedule: Schedule, steps: int = 10,
-                         eta: float = 0.0, clip_x0: float | None = 1.0, w_start: float = 0.1,
-                         w_end: float = 1.0, x_T=None):
+def official_ddim_sample(
+    branches_fn,
+    key,
+    shape,
+    schedule: Schedule,
+    steps: int = 10,
+    eta: float = 0.0,
+    clip_x0: float | None = 1.0,
+    w_start: float = 0.1,
+    w_end: float = 1.0,
+    x_T=None,
+):
   """The official cVMDx guided DDIM loop (`ddim_sample_loop`, v-prediction), float32
   operation for operation.
 
@@ -160,10 +179,12 @@ def official_ddim_sample(branches_fn, key, shape, schedule: Schedule, steps: int
       x0 = jnp.clip(x0, -clip_x0, clip_x0)
     s = eta * jnp.sqrt((1.0 - a_prev) / (1.0 - a_t)) * jnp.sqrt(1.0 - a_t / a_prev)
     noise = jax.random.normal(jax.random.fold_in(key, i), shape)
-    x_prev = (_rounded(jnp.sqrt(a_prev) * x0)
-              + _rounded(jnp.sqrt(jnp.maximum(1.0 - a_prev - s**2, 0.0)) * eps))
+    x_prev = _rounded(jnp.sqrt(a_prev) * x0) + _rounded(
+        jnp.sqrt(jnp.maximum(1.0 - a_prev - s**2, 0.0)) * eps
+    )
     return x_prev + _rounded(jnp.where(t_prev > 0, s, 0.0) * noise), None
 
-  out, _ = jax.lax.scan(body, x_T, (jnp.arange(len(ts)), jnp.asarray(ts), jnp.asarray(ts_prev),
-                                    jnp.asarray(weights)))
+  out, _ = jax.lax.scan(
+      body, x_T, (jnp.arange(len(ts)), jnp.asarray(ts), jnp.asarray(ts_prev), jnp.asarray(weights))
+  )
   return out

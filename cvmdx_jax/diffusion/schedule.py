@@ -29,17 +29,20 @@ class Schedule:
     return self.betas.shape[0]
 
 
-def cosine_schedule(num_steps: int = 1000, offset: float = 0.008,
-                    max_beta: float = 0.999) -> Schedule:
+def cosine_schedule(
+    num_steps: int = 1000, offset: float = 0.008, max_beta: float = 0.999
+) -> Schedule:
   """Cosine schedule of Nichol & Dhariwal (2021):
-  abar(u) = cos^2((u + s) / (1 + s) * pi / 2), beta_t = min(1 - abar((t+1)/T) / abar(t/T), max_beta).
+  abar(u) = cos^2((u + s) / (1 + s) * pi / 2),
+  beta_t = min(1 - abar((t+1)/T) / abar(t/T), max_beta).
   """
   u = np.arange(num_steps + 1, dtype=np.float64) / num_steps
   f = np.cos((u + offset) / (1.0 + offset) * math.pi / 2.0) ** 2
   betas = np.minimum(1.0 - f[1:] / f[:-1], max_beta)
   abar = np.cumprod(1.0 - betas)
-  return Schedule(betas=jnp.asarray(betas, jnp.float32),
-                  alphas_cumprod=jnp.asarray(abar, jnp.float32))
+  return Schedule(
+      betas=jnp.asarray(betas, jnp.float32), alphas_cumprod=jnp.asarray(abar, jnp.float32)
+  )
 
 
 def ddim_timesteps(num_steps: int, steps: int) -> np.ndarray:

@@ -61,8 +61,15 @@ def dpmpp_2m_coefficients(abar_s: jax.Array, abar_t: jax.Array):
   return ratio, coef, 1.0 + half_inv_r, -half_inv_r
 
 
-def dpmpp_2m_sample(v_fn, key, shape, schedule: Schedule, steps: int = 5, clip_x0: float | None = None,
-                    x_T: jax.Array | None = None):
+def dpmpp_2m_sample(
+    v_fn,
+    key,
+    shape,
+    schedule: Schedule,
+    steps: int = 5,
+    clip_x0: float | None = None,
+    x_T: jax.Array | None = None,
+):
   """DPM-Solver++(2M) from noise to x0 in `steps` network evaluations.
 
   Args:

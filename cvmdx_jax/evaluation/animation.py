@@ -34,8 +34,9 @@ def _draw_road(ax, scene: dict, x_range) -> None:
   for markings in (scene["upper"], scene["lower"]):
     for k, y in enumerate(markings):
       outer = k in (0, len(markings) - 1)
-      ax.plot(x_range, [y, y], color="0.3", lw=1.2 if outer else 0.8,
-              ls="-" if outer else (0, (6, 6)))
+      ax.plot(
+          x_range, [y, y], color="0.3", lw=1.2 if outer else 0.8, ls="-" if outer else (0, (6, 6))
+      )
 
 
 def _draw_frame(ax, rec, scene: dict, frame: int, preds, x_range, y_range) -> None:
@@ -50,8 +51,16 @@ def _draw_frame(ax, rec, scene: dict, frame: int, preds, x_range, y_range) -> No
     if not (np.isfinite(length) and np.isfinite(width)):
       length, width = _DEFAULT_SIZE
     colour = _COLOURS[track % len(_COLOURS)]
-    ax.add_patch(patches.Rectangle((cx - length / 2, cy - width / 2), length, width,
-                                   facecolor=colour, edgecolor="k", lw=0.5))
+    ax.add_patch(
+        patches.Rectangle(
+            (cx - length / 2, cy - width / 2),
+            length,
+            width,
+            facecolor=colour,
+            edgecolor="k",
+            lw=0.5,
+        )
+    )
   if preds is not None:
     for i in np.flatnonzero(preds.frame == frame):
       colour = _COLOURS[int(preds.track_id[i]) % len(_COLOURS)]
@@ -62,13 +71,17 @@ def _draw_frame(ax, rec, scene: dict, frame: int, preds, x_range, y_range) -> No
   ax.set_xlim(*x_range)
   ax.set_ylim(y_range[1], y_range[0])  # y down, as the image
   ax.set_aspect("equal")
-  ax.set_title(f"recording {rec.recording_id}, frame {frame} "
-               f"(t = {frame / constants.FRAME_RATE_HZ:.2f} s)", fontsize=8)
+  ax.set_title(
+      f"recording {rec.recording_id}, frame {frame} "
+      f"(t = {frame / constants.FRAME_RATE_HZ:.2f} s)",
+      fontsize=8,
+  )
   ax.tick_params(labelsize=6)
 
 
-def render_gif(rec, scene: dict, frames, preds=None, fps: float = 5.0,
-               width_in: float = 16.0, x_range=None) -> bytes:
+def render_gif(
+    rec, scene: dict, frames, preds=None, fps: float = 5.0, width_in: float = 16.0, x_range=None
+) -> bytes:
   """GIF bytes of `frames` of recording `rec` (`data.highd.Recording`) with `scene`
   (`data.frames.scene`) and the predictions `preds` (`inference.recording.
   VehiclePredictions`, drawn at their own frames; None = vehicles only); `x_range` (x0, x1)
@@ -86,8 +99,11 @@ def render_gif(rec, scene: dict, frames, preds=None, fps: float = 5.0,
   fig, ax = plt.subplots(figsize=(width_in, height_in), dpi=100)
   try:
     movie = mpl_animation.FuncAnimation(
-        fig, lambda f: _draw_frame(ax, rec, scene, f, preds, x_range, y_range),
-        frames=frames, blit=False)
+        fig,
+        lambda f: _draw_frame(ax, rec, scene, f, preds, x_range, y_range),
+        frames=frames,
+        blit=False,
+    )
     with tempfile.TemporaryDirectory() as tmp:
       path = Path(tmp) / "scene.gif"
       movie.save(path, writer=mpl_animation.PillowWriter(fps=fps))
@@ -96,9 +112,18 @@ def render_gif(rec, scene: dict, frames, preds=None, fps: float = 5.0,
     plt.close(fig)
 
 
-def write_clip(predictor, data_dir, recording_id: int, path, start_s: float = 10.0,
-               seconds: float = 1.0, every: int = 5, section_m: float = 300.0,
-               num_samples: int | None = 9, seed: int = 0) -> dict:
+def write_clip(
+    predictor,
+    data_dir,
+    recording_id: int,
+    path,
+    start_s: float = 10.0,
+    seconds: float = 1.0,
+    every: int = 5,
+    section_m: float = 300.0,
+    num_samples: int | None = 9,
+    seed: int = 0,
+) -> dict:
   """Writes to `path` (atomic) a GIF of `seconds` of recording `recording_id` of `data_dir`
   from `start_s` after its first frame, at every `every`-th frame: the middle `section_m`
   metres of the road and the hypotheses of every vehicle there (`predictor`, a
@@ -106,8 +131,9 @@ def write_clip(predictor, data_dir, recording_id: int, path, start_s: float = 10
   clip short (about 100 predictions). Returns the prediction summary
   (`inference.recording.predict_frames`)."""
   if num_samples is not None:
-    predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
-        predictor.sampling, num_samples=num_samples))
+    predictor = dataclasses.replace(
+        predictor, sampling=dataclasses.replace(predictor.sampling, num_samples=num_samples)
+    )
   rec = highd.read_recording(data_dir, recording_id)
   first, last = frames_lib.frame_range(rec)
   begin = min(last, first + round(start_s * constants.FRAME_RATE_HZ))
@@ -116,9 +142,16 @@ def write_clip(predictor, data_dir, recording_id: int, path, start_s: float = 10
   x = frames_lib.image_centre(rec, np.arange(len(rec.frame)))[:, 0]
   middle = 0.5 * (x.min() + x.max())
   section = (middle - section_m / 2, middle + section_m / 2)
-  preds, summary = recording.predict_frames(predictor, rec, window, seed=seed, every=every,
-                                            section=section)
-  gif = render_gif(rec, frames_lib.scene(data_dir, recording_id), window, preds,
-                   fps=constants.FRAME_RATE_HZ / every, x_range=section)
+  preds, summary = recording.predict_frames(
+      predictor, rec, window, seed=seed, every=every, section=section
+  )
+  gif = render_gif(
+      rec,
+      frames_lib.scene(data_dir, recording_id),
+      window,
+      preds,
+      fps=constants.FRAME_RATE_HZ / every,
+      x_range=section,
+  )
   atomic.write_bytes(path, gif)
   return summary

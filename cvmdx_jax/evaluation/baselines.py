@@ -24,10 +24,10 @@ def constant_acceleration_yaw_rate(xi, window: int = 10):
   span = (window - 1) * constants.DT
   accel = (speed[:, -1] - speed[:, 0]) / span
   yaw_rate = (heading[:, -1] - heading[:, 0]) / span
-  controls = jnp.broadcast_to(jnp.stack([accel, yaw_rate], -1)[:, None, :],
-                              (vel.shape[0], constants.T_PRED, 2))
+  controls = jnp.broadcast_to(
+      jnp.stack([accel, yaw_rate], -1)[:, None, :], (vel.shape[0], constants.T_PRED, 2)
+  )
   return vmm.rollout(controls, speed[:, -1], heading[:, -1])
-
 
 
 def token_mean(train_controls, train_tokens, tokens, v0, psi0, codebook_size: int):
@@ -50,6 +50,9 @@ def token_mean(train_controls, train_tokens, tokens, v0, psi0, codebook_size: in
   train_controls = jnp.asarray(train_controls, jnp.float32)
   sums = jax.ops.segment_sum(train_controls, train_tokens, codebook_size)
   counts = jax.ops.segment_sum(jnp.ones(train_controls.shape[0]), train_tokens, codebook_size)
-  means = jnp.where(counts[:, None, None] > 0, sums / jnp.maximum(counts, 1)[:, None, None],
-                    jnp.mean(train_controls, axis=0))
+  means = jnp.where(
+      counts[:, None, None] > 0,
+      sums / jnp.maximum(counts, 1)[:, None, None],
+      jnp.mean(train_controls, axis=0),
+  )
   return vmm.rollout(means[jnp.asarray(tokens)], jnp.asarray(v0), jnp.asarray(psi0))

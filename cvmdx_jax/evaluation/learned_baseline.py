@@ -27,16 +27,21 @@ def check_tokenizer(baseline: LearnedBaseline, tokenizer: TokenizerBundle, where
   Raises:
     IncompatibleBaselineError: naming `where` and the differing keys.
   """
-  identity.check(baseline.fingerprint.to_dict()["tokenizer"], tokenizer.checkpoint.to_dict(),
-                 f"baseline {where} (not trained on tokens of this tokeniser; retrain it on "
-                 "this tokeniser's tokens)", IncompatibleBaselineError)
+  identity.check(
+      baseline.fingerprint.to_dict()["tokenizer"],
+      tokenizer.checkpoint.to_dict(),
+      f"baseline {where} (not trained on tokens of this tokeniser; retrain it on "
+      "this tokeniser's tokens)",
+      IncompatibleBaselineError,
+  )
 
 
 def scenario_errors(baseline: LearnedBaseline, q, delta, scenarios) -> dict:
   """Per-scenario errors of the rows `METHODS` on `scenarios` with tokens q (M,) and delta
   (M,) of the evaluated tokeniser (`errors`)."""
-  trajectories, probs = baseline(q, delta, scenarios.xi, scenarios.mask, scenarios.v0,
-                                 scenarios.psi0)
+  trajectories, probs = baseline(
+      q, delta, scenarios.xi, scenarios.mask, scenarios.v0, scenarios.psi0
+  )
   return errors(trajectories, probs, scenarios.future, scenarios.label)
 
 
@@ -47,7 +52,10 @@ def errors(trajectories, probs, gt, labels) -> dict:
   mean = jnp.einsum("mk,mktc->mtc", probs, trajectories, precision=constants.EXACT_MATMUL)
   # every head is a hypothesis: a probability that underflowed to 0 must not drop it
   used = jnp.maximum(probs, jnp.finfo(probs.dtype).tiny)
-  return {"mlp_most_likely": scoring.single_trajectory_errors(
-              metrics.most_likely(trajectories, probs), gt),
-          "mlp_mean": scoring.single_trajectory_errors(mean, gt),
-          "mlp_best_of_k": scoring.best_of_k_errors(trajectories, used, gt, labels)}
+  return {
+      "mlp_most_likely": scoring.single_trajectory_errors(
+          metrics.most_likely(trajectories, probs), gt
+      ),
+      "mlp_mean": scoring.single_trajectory_errors(mean, gt),
+      "mlp_best_of_k": scoring.best_of_k_errors(trajectories, used, gt, labels),
+  }

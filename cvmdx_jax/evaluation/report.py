@@ -30,9 +30,15 @@ from cvmdx_jax import constants
 from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import balanced_indices
-from cvmdx_jax.evaluation import comparisons, figures, learned_baseline, mdn_rows, scoring
+from cvmdx_jax.evaluation import (
+    comparisons,
+    figures,
+    learned_baseline,
+    mdn_rows,
+    report_models,
+    scoring,
+)
 from cvmdx_jax.evaluation import report_files as files
-from cvmdx_jax.evaluation import report_models
 from cvmdx_jax.evaluation import token_kl as kl
 from cvmdx_jax.storage import locking
 
@@ -51,7 +57,9 @@ def _errors(models: report_models.Models, out, scenarios) -> dict:
   return errors
 
 
-def _ddpm_results(models: report_models.Models, scenarios, seed: int, size: int, split: str) -> dict:
+def _ddpm_results(
+    models: report_models.Models, scenarios, seed: int, size: int, split: str
+) -> dict:
   """The single-DDPM-sample row on a class-balanced subset of `size` ({} if none)."""
   if not size:
     return {}

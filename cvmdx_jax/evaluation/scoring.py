@@ -33,9 +33,12 @@ from cvmdx_jax.evaluation import baselines, metrics, probabilistic
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")
 SUBSETS = ("all",) + constants.CLASS_NAMES
 METHOD_TITLES = {
-    "cvmdx_mean": "cVMDx mean of N", "cvmdx_most_likely": "cVMDx most likely p(c)",
-    "cvmdx_best_of_k": "cVMDx best of K (minADE_K / minFDE_K)", "cv": "Constant velocity",
-    "ca": "Constant acceleration + yaw rate", "ddpm_single": "cVMD-style single DDPM sample",
+    "cvmdx_mean": "cVMDx mean of N",
+    "cvmdx_most_likely": "cVMDx most likely p(c)",
+    "cvmdx_best_of_k": "cVMDx best of K (minADE_K / minFDE_K)",
+    "cv": "Constant velocity",
+    "ca": "Constant acceleration + yaw rate",
+    "ddpm_single": "cVMD-style single DDPM sample",
     # the learned baseline (`learned_baseline`), in reports given a --baseline_dir
     "mlp_most_likely": "MLP, 3 heads (WTA): most likely",
     "mlp_mean": "MLP, 3 heads (WTA): probability-weighted mean",
@@ -43,8 +46,12 @@ METHOD_TITLES = {
 }
 TARGET_LANE_MIN_PROB = 0.2  # a hypothesis counts for target_lane_hit from this probability
 # Paper, Table II (highD): ADE / FDE@5s in metres.
-PAPER_HIGHD = {"cvmdx_mean": (1.37, 3.84), "cvmdx_most_likely": (1.43, 4.00),
-               "cvmdx_best_of_k": (1.33, 3.68), "ddpm_single": (1.79, 3.76)}
+PAPER_HIGHD = {
+    "cvmdx_mean": (1.37, 3.84),
+    "cvmdx_most_likely": (1.43, 4.00),
+    "cvmdx_best_of_k": (1.33, 3.68),
+    "ddpm_single": (1.79, 3.76),
+}
 
 
 class NonFinitePredictionError(UserError):
@@ -53,9 +60,11 @@ class NonFinitePredictionError(UserError):
 
 def _name_scenarios(scenarios, index, limit: int = 10) -> str:
   """'#i (recording r, track t, frame f), ...' for the first `limit` of `index`."""
-  names = [f"#{i} (recording {int(scenarios.recording_id[i])}, track "
-           f"{int(scenarios.track_id[i])}, frame {int(scenarios.frame[i])})"
-           for i in index[:limit]]
+  names = [
+      f"#{i} (recording {int(scenarios.recording_id[i])}, track "
+      f"{int(scenarios.track_id[i])}, frame {int(scenarios.frame[i])})"
+      for i in index[:limit]
+  ]
   return ", ".join(names) + (f" and {len(index) - limit} more" if len(index) > limit else "")
 
 
@@ -76,15 +85,22 @@ def check_finite(prediction, scenarios, what: str) -> None:
   if bad.any():
     raise NonFinitePredictionError(
         f"{what}: non-finite predictions for {int(bad.sum())} of {m} scenarios: "
-        f"{_name_scenarios(scenarios, np.flatnonzero(bad))}")
+        f"{_name_scenarios(scenarios, np.flatnonzero(bad))}"
+    )
 
 
 def single_trajectory_errors(pred, gt) -> dict:
   """Per-scenario errors of one trajectory per scenario: (M, T, 2) each -> dict of (M,)."""
   final = metrics.fde(pred, gt)
   lon, lat = metrics.final_lon_lat(pred, gt)
-  return {"ade": metrics.ade(pred, gt), "fde": final, "final_lon": lon, "final_lat": lat,
-          "miss_rate": metrics.miss(final), "hit_rate": metrics.hit(pred, gt)}
+  return {
+      "ade": metrics.ade(pred, gt),
+      "fde": final,
+      "final_lon": lon,
+      "final_lat": lat,
+      "miss_rate": metrics.miss(final),
+      "hit_rate": metrics.hit(pred, gt),
+  }
 
 
 def best_of_k_errors(hyps, probs, gt, labels) -> dict:
@@ -97,15 +113,22 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
   valid = probs > 0
   final = metrics.min_fde_k(hyps, gt, valid)
   lon, lat = metrics.final_lon_lat(
-      metrics.take_hypothesis(hyps, metrics.closest_final(hyps, gt, valid)), gt)
+      metrics.take_hypothesis(hyps, metrics.closest_final(hyps, gt, valid)), gt
+  )
   hits = jnp.where(valid, metrics.hit(hyps, gt[:, None]), 0.0)
   lane = metrics.target_lane_hit(hyps, probs, gt, min_prob=TARGET_LANE_MIN_PROB)
   weights = probs / jnp.sum(probs, axis=-1, keepdims=True)
-  return {"ade": metrics.min_ade_k(hyps, gt, valid), "fde": final, "final_lon": lon,
-          "final_lat": lat, "miss_rate": metrics.miss(final), "hit_rate": jnp.max(hits, axis=-1),
-          "brier_min_fde": metrics.brier_min_fde(hyps, probs, gt, valid),
-          "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0),
-          "energy_score": probabilistic.weighted_energy_score(hyps, weights, gt, fair=False)}
+  return {
+      "ade": metrics.min_ade_k(hyps, gt, valid),
+      "fde": final,
+      "final_lon": lon,
+      "final_lat": lat,
+      "miss_rate": metrics.miss(final),
+      "hit_rate": jnp.max(hits, axis=-1),
+      "brier_min_fde": metrics.brier_min_fde(hyps, probs, gt, valid),
+      "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0),
+      "energy_score": probabilistic.weighted_energy_score(hyps, weights, gt, fair=False),
+  }
 
 
 def cvmdx_errors(output, gt, labels) -> dict:
@@ -115,15 +138,18 @@ def cvmdx_errors(output, gt, labels) -> dict:
   prediction, hyp = output.prediction, output.hypotheses
   mean = single_trajectory_errors(prediction.mean, gt)
   return {
-      "cvmdx_mean": {**mean, "out_of_distribution": np.asarray(output.out_of_distribution,
-                                                               np.float64),
-                     "energy_score": probabilistic.energy_score(prediction.trajectories, gt)},
-      "cvmdx_most_likely": single_trajectory_errors(
-          metrics.most_likely(hyp.means, hyp.probs), gt),
+      "cvmdx_mean": {
+          **mean,
+          "out_of_distribution": np.asarray(output.out_of_distribution, np.float64),
+          "energy_score": probabilistic.energy_score(prediction.trajectories, gt),
+      },
+      "cvmdx_most_likely": single_trajectory_errors(metrics.most_likely(hyp.means, hyp.probs), gt),
       "cvmdx_best_of_k": {
           **best_of_k_errors(hyp.means, hyp.probs, gt, labels),
-          "nll_final": probabilistic.final_position_nll(prediction.trajectories, hyp.labels,
-                                                        hyp.probs, gt)},
+          "nll_final": probabilistic.final_position_nll(
+              prediction.trajectories, hyp.labels, hyp.probs, gt
+          ),
+      },
   }
 
 
@@ -141,14 +167,17 @@ def calibration(hyps, probs, gt, labels) -> tuple[dict, dict]:
   out = {}
   for subset, sel in _subset_masks(np.asarray(labels)):
     rel = probabilistic.reliability(probs[sel], correct[sel], valid[sel])
-    out[subset] = {"ece": float(probabilistic.expected_calibration_error(rel))
-                   if sel.any() else float("nan")}
+    out[subset] = {
+        "ece": float(probabilistic.expected_calibration_error(rel)) if sel.any() else float("nan")
+    }
   rel = probabilistic.reliability(probs, correct, valid)
   count = np.asarray(rel.count, np.float64)
   with np.errstate(invalid="ignore", divide="ignore"):
-    diagram = {"count": count.tolist(),
-               "confidence": (np.asarray(rel.confidence) / count).tolist(),
-               "accuracy": (np.asarray(rel.correct) / count).tolist()}
+    diagram = {
+        "count": count.tolist(),
+        "confidence": (np.asarray(rel.confidence) / count).tolist(),
+        "accuracy": (np.asarray(rel.correct) / count).tolist(),
+    }
   return out, diagram
 
 
@@ -173,16 +202,22 @@ def baseline_errors(scenarios) -> dict:
   """Constant velocity and constant acceleration + yaw rate; their `energy_score` is that of
   a point mass (the root-mean-square displacement)."""
   gt = jnp.asarray(scenarios.future)
-  point_mass = lambda pred: {**single_trajectory_errors(pred, gt),
-                             "energy_score": probabilistic.energy_score(pred[:, None], gt)}
-  return {"cv": point_mass(baselines.constant_velocity(scenarios.xi)),
-          "ca": point_mass(baselines.constant_acceleration_yaw_rate(scenarios.xi))}
+  point_mass = lambda pred: {
+      **single_trajectory_errors(pred, gt),
+      "energy_score": probabilistic.energy_score(pred[:, None], gt),
+  }
+  return {
+      "cv": point_mass(baselines.constant_velocity(scenarios.xi)),
+      "ca": point_mass(baselines.constant_acceleration_yaw_rate(scenarios.xi)),
+  }
 
 
 def _subset_masks(labels):
   """(subset name, (M,) bool selection) for each of `SUBSETS`."""
-  return [(s, np.ones_like(labels, bool) if s == "all" else labels == SUBSETS.index(s) - 1)
-          for s in SUBSETS]
+  return [
+      (s, np.ones_like(labels, bool) if s == "all" else labels == SUBSETS.index(s) - 1)
+      for s in SUBSETS
+  ]
 
 
 def summarise(errors: dict, labels) -> dict:
@@ -203,8 +238,9 @@ def summarise(errors: dict, labels) -> dict:
     for k, v in per.items():
       bad = np.flatnonzero(~np.isfinite(v.filled(0.0)))
       if len(bad):
-        raise NonFinitePredictionError(f"{method} {k} is not finite for scenarios at "
-                                       f"positions {bad[:10].tolist()}")
+        raise NonFinitePredictionError(
+            f"{method} {k} is not finite for scenarios at " f"positions {bad[:10].tolist()}"
+        )
     out[method] = {}
     for subset, sel in _subset_masks(labels):
       row = {}
@@ -221,39 +257,69 @@ def markdown_tables(results: dict) -> str:
   """Three markdown tables: overall (paper Table II layout plus the added metrics), per
   class (Table I) and cVMDx's scenario uncertainty per subset."""
   fmt = lambda x, spec="{:.2f}": "-" if x is None else "n/a" if x != x else spec.format(x)
-  lines = ["| model | ADE [m] | FDE@5s [m] | final lon [m] | final lat [m] | miss rate (2 m) "
-           "| hit rate (1.75 m) | Brier-minFDE [m] | target lane, p >= 0.2 (lc) | scenarios "
-           "| paper highD ADE / FDE |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+  lines = [
+      "| model | ADE [m] | FDE@5s [m] | final lon [m] | final lat [m] | miss rate (2 m) "
+      "| hit rate (1.75 m) | Brier-minFDE [m] | target lane, p >= 0.2 (lc) | scenarios "
+      "| paper highD ADE / FDE |",
+      "|---|---|---|---|---|---|---|---|---|---|---|",
+  ]
   for method, by_subset in results.items():
     r = by_subset["all"]
     paper = PAPER_HIGHD.get(method)
-    cells = " | ".join(fmt(r.get(k)) for k in ("ade", "fde", "final_lon", "final_lat",
-                                                "miss_rate", "hit_rate", "brier_min_fde",
-                                                "target_lane_hit"))
-    lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} | {r['num_scenarios']} | "
-                 f"{f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '-'} |")
-  lines += ["", "| model | " + " | ".join(f"{s} ADE | {s} FDE" for s in constants.CLASS_NAMES)
-            + " |", "|---|" + "---|---|" * len(constants.CLASS_NAMES)]
+    cells = " | ".join(
+        fmt(r.get(k))
+        for k in (
+            "ade",
+            "fde",
+            "final_lon",
+            "final_lat",
+            "miss_rate",
+            "hit_rate",
+            "brier_min_fde",
+            "target_lane_hit",
+        )
+    )
+    lines.append(
+        f"| {METHOD_TITLES.get(method, method)} | {cells} | {r['num_scenarios']} | "
+        f"{f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '-'} |"
+    )
+  lines += [
+      "",
+      "| model | " + " | ".join(f"{s} ADE | {s} FDE" for s in constants.CLASS_NAMES) + " |",
+      "|---|" + "---|---|" * len(constants.CLASS_NAMES),
+  ]
   for method, by_subset in results.items():
-    cells = " | ".join(f"{fmt(by_subset[s]['ade'])} | {fmt(by_subset[s]['fde'])}"
-                       for s in constants.CLASS_NAMES)
+    cells = " | ".join(
+        f"{fmt(by_subset[s]['ade'])} | {fmt(by_subset[s]['fde'])}" for s in constants.CLASS_NAMES
+    )
     lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} |")
   if "cvmdx_mean" in results:
-    lines += ["", "| cVMDx scenario uncertainty | scenarios | out of distribution "
-              "| Spearman rho(delta, mean-of-N ADE) | p-value |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| cVMDx scenario uncertainty | scenarios | out of distribution "
+        "| Spearman rho(delta, mean-of-N ADE) | p-value |",
+        "|---|---|---|---|---|",
+    ]
     for subset in SUBSETS:
       r = results["cvmdx_mean"][subset]
-      lines.append(f"| {subset} | {r['num_scenarios']} | "
-                   f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
-                   f"{fmt(r.get('delta_ade_spearman'))} | "
-                   f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |")
+      lines.append(
+          f"| {subset} | {r['num_scenarios']} | "
+          f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
+          f"{fmt(r.get('delta_ade_spearman'))} | "
+          f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |"
+      )
   if "cvmdx_best_of_k" in results:
-    lines += ["", "| cVMDx probabilistic quality | scenarios | energy score of N [m] "
-              "| NLL at 5 s [nats] | ECE of p(c), 10 bins | Brier-minFDE [m] |",
-              "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| cVMDx probabilistic quality | scenarios | energy score of N [m] "
+        "| NLL at 5 s [nats] | ECE of p(c), 10 bins | Brier-minFDE [m] |",
+        "|---|---|---|---|---|---|",
+    ]
     for subset in SUBSETS:
       r, m = results["cvmdx_best_of_k"][subset], results.get("cvmdx_mean", {}).get(subset, {})
-      lines.append(f"| {subset} | {r['num_scenarios']} | {fmt(m.get('energy_score'))} | "
-                   f"{fmt(r.get('nll_final'))} | {fmt(r.get('ece'), '{:.3f}')} | "
-                   f"{fmt(r.get('brier_min_fde'))} |")
+      lines.append(
+          f"| {subset} | {r['num_scenarios']} | {fmt(m.get('energy_score'))} | "
+          f"{fmt(r.get('nll_final'))} | {fmt(r.get('ece'), '{:.3f}')} | "
+          f"{fmt(r.get('brier_min_fde'))} |"
+      )
   return "\n".join(lines) + "\n"

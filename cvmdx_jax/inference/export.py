@@ -54,18 +54,29 @@ FORMAT_VERSION = 1
 BATCH = "b"  # the symbolic batch dimension's name in shapes and the manifest
 
 
-
 def predict_inputs(num_noise_ids: int = 1) -> tuple:
   """(name, shape with BATCH, dtype) of predict.jax's positional inputs."""
-  return (("xi", (BATCH, constants.NUM_VEHICLES, constants.T_OBS, 4), "float32"),
-          ("mask", (BATCH, constants.NUM_VEHICLES, constants.T_OBS), "bool"),
-          ("v0", (BATCH,), "float32"),
-          ("psi0", (BATCH,), "float32"),
-          ("seed", (), "uint32"),
-          ("noise_ids", (BATCH, num_noise_ids), "uint32"))
+  return (
+      ("xi", (BATCH, constants.NUM_VEHICLES, constants.T_OBS, 4), "float32"),
+      ("mask", (BATCH, constants.NUM_VEHICLES, constants.T_OBS), "bool"),
+      ("v0", (BATCH,), "float32"),
+      ("psi0", (BATCH,), "float32"),
+      ("seed", (), "uint32"),
+      ("noise_ids", (BATCH, num_noise_ids), "uint32"),
+  )
 
-PREDICT_OUTPUTS = ("trajectories", "controls", "mean", "hypothesis_means", "hypothesis_probs",
-                   "num_modes", "labels", "q", "delta")
+
+PREDICT_OUTPUTS = (
+    "trajectories",
+    "controls",
+    "mean",
+    "hypothesis_means",
+    "hypothesis_probs",
+    "num_modes",
+    "labels",
+    "q",
+    "delta",
+)
 
 
 def _keys(seed, noise_ids):
@@ -81,13 +92,30 @@ def predict_fn(predictor: predictor_lib.Predictor):
   schedule = cosine_schedule(predictor.denoiser.config.diffusion.num_steps)
 
   def f(xi, mask, v0, psi0, seed, noise_ids):
-    pred, q, delta = predictor_lib._predict(predictor.tokenizer, predictor.denoiser, xi, mask,
-                                            v0, psi0, _keys(seed, noise_ids), schedule,
-                                            config=predictor.sampling)
+    pred, q, delta = predictor_lib._predict(
+        predictor.tokenizer,
+        predictor.denoiser,
+        xi,
+        mask,
+        v0,
+        psi0,
+        _keys(seed, noise_ids),
+        schedule,
+        config=predictor.sampling,
+    )
     hyp = pred.hypotheses
-    return {"trajectories": pred.trajectories, "controls": pred.controls, "mean": pred.mean,
-            "hypothesis_means": hyp.means, "hypothesis_probs": hyp.probs,
-            "num_modes": hyp.num_modes, "labels": hyp.labels, "q": q, "delta": delta}
+    return {
+        "trajectories": pred.trajectories,
+        "controls": pred.controls,
+        "mean": pred.mean,
+        "hypothesis_means": hyp.means,
+        "hypothesis_probs": hyp.probs,
+        "num_modes": hyp.num_modes,
+        "labels": hyp.labels,
+        "q": q,
+        "delta": delta,
+    }
+
   return f
 
 
@@ -108,30 +136,40 @@ def denoiser_fn(predictor: predictor_lib.Predictor):
 
 def denoiser_inputs(predictor: predictor_lib.Predictor) -> tuple:
   """(name, shape, dtype) of denoiser.jax's inputs."""
-  inputs = (("x_t", (BATCH, constants.T_PRED, 2), "float32"), ("t", (BATCH,), "int32"),
-            ("q", (BATCH,), "int32"))
+  inputs = (
+      ("x_t", (BATCH, constants.T_PRED, 2), "float32"),
+      ("t", (BATCH,), "int32"),
+      ("q", (BATCH,), "int32"),
+  )
   c = cond_dim(predictor)
   return inputs + ((("cond", (BATCH, c), "float32"),) if c else ())
 
 
 def _abstract(inputs, batch) -> list:
-  return [jax.ShapeDtypeStruct(tuple(batch if d == BATCH else d for d in shape), dtype)
-          for _, shape, dtype in inputs]
+  return [
+      jax.ShapeDtypeStruct(tuple(batch if d == BATCH else d for d in shape), dtype)
+      for _, shape, dtype in inputs
+  ]
 
 
 def _spec(name, shape, dtype) -> dict:
-  return {"name": name, "shape": [str(d) if not isinstance(d, int) else d for d in shape],
-          "dtype": str(dtype)}
+  return {
+      "name": name,
+      "shape": [str(d) if not isinstance(d, int) else d for d in shape],
+      "dtype": str(dtype),
+  }
 
 
 def export_bytes(f, inputs) -> tuple[bytes, list]:
   """(serialised `jax.export` of jit(f) over `inputs` with a symbolic batch, the output
   specs [{name, shape, dtype}] in the artefact's flat output order)."""
-  batch, = jax.export.symbolic_shape(BATCH)
+  (batch,) = jax.export.symbolic_shape(BATCH)
   exported = jax.export.export(jax.jit(f), platforms=(jax.default_backend(),))(
-      *_abstract(inputs, batch))
-  outputs = [_spec(n, a.shape, a.dtype)
-             for n, a in zip(_output_names(exported), exported.out_avals)]
+      *_abstract(inputs, batch)
+  )
+  outputs = [
+      _spec(n, a.shape, a.dtype) for n, a in zip(_output_names(exported), exported.out_avals)
+  ]
   return exported.serialize(), outputs
 
 
@@ -144,29 +182,40 @@ def _output_names(exported) -> list[str]:
 def _runs(predictor: predictor_lib.Predictor) -> dict:
   tok = predictor.tokenizer
   checkpoint = None if tok.checkpoint is None else tok.checkpoint.to_dict()
-  return {"tokenizer_checkpoint": checkpoint,
-          "denoiser_fingerprint_id": identity.content_id(predictor.denoiser.fingerprint.to_dict()),
-          "denoiser_params_id": identity.content_id(jax.device_get(predictor.denoiser.params))}
+  return {
+      "tokenizer_checkpoint": checkpoint,
+      "denoiser_fingerprint_id": identity.content_id(predictor.denoiser.fingerprint.to_dict()),
+      "denoiser_params_id": identity.content_id(jax.device_get(predictor.denoiser.params)),
+  }
 
 
-def manifest(predictor: predictor_lib.Predictor, predict_inputs_, predict_outputs,
-             denoiser_outputs) -> dict:
+def manifest(
+    predictor: predictor_lib.Predictor, predict_inputs_, predict_outputs, denoiser_outputs
+) -> dict:
   """The manifest.json of an export (see the module docstring)."""
   targets = predictor.denoiser.config.diffusion
   return {
-      "format_version": FORMAT_VERSION, "jax_version": jax.__version__,
-      "platforms": [jax.default_backend()], "batch_dimension": BATCH,
-      "predict": {"file": PREDICT_FILE, "inputs": [_spec(*i) for i in predict_inputs_],
-                  "outputs": predict_outputs,
-                  "keys": "scenario i draws from fold_in(... fold_in(key(seed), "
-                          "noise_ids[i, 0]) ..., noise_ids[i, K - 1])"},
-      "denoiser": {"file": DENOISER_FILE,
-                   "inputs": [_spec(*i) for i in denoiser_inputs(predictor)],
-                   "outputs": denoiser_outputs,
-                   "cond": _cond_layout(predictor),
-                   "num_steps": targets.num_steps, "null_token": predictor.denoiser.null_token,
-                   "control_scale": list(np.asarray(targets.control_scale, float).ravel()),
-                   "conditioning": targets.conditioning},
+      "format_version": FORMAT_VERSION,
+      "jax_version": jax.__version__,
+      "platforms": [jax.default_backend()],
+      "batch_dimension": BATCH,
+      "predict": {
+          "file": PREDICT_FILE,
+          "inputs": [_spec(*i) for i in predict_inputs_],
+          "outputs": predict_outputs,
+          "keys": "scenario i draws from fold_in(... fold_in(key(seed), "
+          "noise_ids[i, 0]) ..., noise_ids[i, K - 1])",
+      },
+      "denoiser": {
+          "file": DENOISER_FILE,
+          "inputs": [_spec(*i) for i in denoiser_inputs(predictor)],
+          "outputs": denoiser_outputs,
+          "cond": _cond_layout(predictor),
+          "num_steps": targets.num_steps,
+          "null_token": predictor.denoiser.null_token,
+          "control_scale": list(np.asarray(targets.control_scale, float).ravel()),
+          "conditioning": targets.conditioning,
+      },
       "sampling": _plain(dataclasses.asdict(predictor.sampling)),
       "delta_limit": predictor.delta_limit if np.isfinite(predictor.delta_limit) else None,
       "runs": _runs(predictor),
@@ -203,19 +252,29 @@ def onnx_bytes(predictor: predictor_lib.Predictor) -> bytes:
   try:
     import jax2onnx  # optional: pip install --no-deps -r requirements-onnx.lock
   except ImportError as e:
-    raise UserError("the ONNX export needs jax2onnx and onnx: pip install --no-deps -r "
-                    f"requirements-onnx.lock ({e})") from e
+    raise UserError(
+        "the ONNX export needs jax2onnx and onnx: pip install --no-deps -r "
+        f"requirements-onnx.lock ({e})"
+    ) from e
   inputs = denoiser_inputs(predictor)
-  batch, = jax.export.symbolic_shape(BATCH)
+  (batch,) = jax.export.symbolic_shape(BATCH)
   with performance.use(performance.PerformanceOptions(winograd="on", group_norm_backward="off")):
-    model = jax2onnx.to_onnx(denoiser_fn(predictor), _abstract(inputs, batch),
-                             model_name="cvmdx_denoiser", input_names=[n for n, _, _ in inputs],
-                             output_names=["v"])
+    model = jax2onnx.to_onnx(
+        denoiser_fn(predictor),
+        _abstract(inputs, batch),
+        model_name="cvmdx_denoiser",
+        input_names=[n for n, _, _ in inputs],
+        output_names=["v"],
+    )
   return model.SerializeToString()
 
 
-def export(predictor: predictor_lib.Predictor, out_dir: str | os.PathLike,
-           num_noise_ids: int = 1, onnx: bool = False) -> dict:
+def export(
+    predictor: predictor_lib.Predictor,
+    out_dir: str | os.PathLike,
+    num_noise_ids: int = 1,
+    onnx: bool = False,
+) -> dict:
   """Writes predict.jax, denoiser.jax, manifest.json (and denoiser.onnx) to `out_dir`
   (created); returns the manifest. num_noise_ids: K of the noise_ids input (1:
   `Predictor`'s default ids)."""
@@ -224,13 +283,20 @@ def export(predictor: predictor_lib.Predictor, out_dir: str | os.PathLike,
   files = {out / ONNX_FILE: onnx_bytes(predictor)} if onnx else {}
   inputs = predict_inputs(num_noise_ids)
   predict_bytes, predict_outputs = export_bytes(predict_fn(predictor), inputs)
-  denoiser_bytes, denoiser_outputs = export_bytes(denoiser_fn(predictor),
-                                                  denoiser_inputs(predictor))
+  denoiser_bytes, denoiser_outputs = export_bytes(
+      denoiser_fn(predictor), denoiser_inputs(predictor)
+  )
   meta = manifest(predictor, inputs, predict_outputs, denoiser_outputs)
   if onnx:
     meta["denoiser"]["onnx_file"] = ONNX_FILE
-  checksums.write_all({out / PREDICT_FILE: predict_bytes, out / DENOISER_FILE: denoiser_bytes,
-                       **files, out / MANIFEST_FILE: atomic.json_text(meta).encode()})
+  checksums.write_all(
+      {
+          out / PREDICT_FILE: predict_bytes,
+          out / DENOISER_FILE: denoiser_bytes,
+          **files,
+          out / MANIFEST_FILE: atomic.json_text(meta).encode(),
+      }
+  )
   return meta
 
 
@@ -243,6 +309,11 @@ def call_inputs(scenarios, seed: int, noise_ids=None) -> tuple:
   """predict.jax's positional inputs for `Scenarios` or `Observations` (noise_ids (M, K);
   default the positions 0..M-1, K = 1)."""
   ids = np.arange(len(scenarios))[:, None] if noise_ids is None else noise_ids
-  return (np.asarray(scenarios.xi, np.float32), np.asarray(scenarios.mask, bool),
-          np.asarray(scenarios.v0, np.float32), np.asarray(scenarios.psi0, np.float32),
-          np.uint32(seed), np.asarray(ids, np.uint32))
+  return (
+      np.asarray(scenarios.xi, np.float32),
+      np.asarray(scenarios.mask, bool),
+      np.asarray(scenarios.v0, np.float32),
+      np.asarray(scenarios.psi0, np.float32),
+      np.uint32(seed),
+      np.asarray(ids, np.uint32),
+  )

@@ -49,17 +49,24 @@ class MixtureDensityBaseline:
     """The mixture (means, stds (M, K, 125, 2) m, weights (M, K), numpy) from tokens q
     (M,), delta (M,) and the observed scenarios xi (M, 9, 75, 4), mask (M, 9, 75), v0,
     psi0 (M,)."""
-    out = _mixture(self, jnp.asarray(q, jnp.int32), jnp.asarray(delta, jnp.float32),
-                   jnp.asarray(xi, jnp.float32), jnp.asarray(mask, bool),
-                   jnp.asarray(v0, jnp.float32), jnp.asarray(psi0, jnp.float32))
+    out = _mixture(
+        self,
+        jnp.asarray(q, jnp.int32),
+        jnp.asarray(delta, jnp.float32),
+        jnp.asarray(xi, jnp.float32),
+        jnp.asarray(mask, bool),
+        jnp.asarray(v0, jnp.float32),
+        jnp.asarray(psi0, jnp.float32),
+    )
     return jax.tree.map(np.asarray, out)
 
 
 @jax.jit
 def _mixture(model: MixtureDensityBaseline, q, delta, xi, mask, v0, psi0) -> GaussianMixture:
   ego = ego_motion.ego_features(xi, mask)
-  means, stds, logits = mdn.mixture(model.graphdef, model.params, model.config.model, q,
-                                    delta, ego, v0, psi0)
+  means, stds, logits = mdn.mixture(
+      model.graphdef, model.params, model.config.model, q, delta, ego, v0, psi0
+  )
   return GaussianMixture(means=means, stds=stds, weights=jax.nn.softmax(logits, axis=-1))
 
 
@@ -73,7 +80,7 @@ def load_mdn(workdir: str | os.PathLike) -> MixtureDensityBaseline:
       multiple-choice baseline run); no complete checkpoint, one of another model size, or
       a corrupt one.
   """
-  config, params, fingerprint, epoch = loaders.load_val_chosen(workdir, MDNRunConfig, mdn.init,
-                                                               "mixture density")
-  return MixtureDensityBaseline(params, mdn.make_graphdef(config.model), config, fingerprint,
-                                epoch)
+  config, params, fingerprint, epoch = loaders.load_val_chosen(
+      workdir, MDNRunConfig, mdn.init, "mixture density"
+  )
+  return MixtureDensityBaseline(params, mdn.make_graphdef(config.model), config, fingerprint, epoch)

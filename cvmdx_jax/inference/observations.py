@@ -24,8 +24,10 @@ from cvmdx_jax.data.scenarios import Scenarios
 UNKNOWN_DIRECTION = 0  # direction of a projected `Scenarios` (no image frame)
 # field name -> (trailing shape, dtype)
 FIELDS = {
-    **{name: SCENARIO_FIELDS[name] for name in ("xi", "mask", "v0", "psi0", "recording_id",
-                                                "track_id", "frame")},
+    **{
+        name: SCENARIO_FIELDS[name]
+        for name in ("xi", "mask", "v0", "psi0", "recording_id", "track_id", "frame")
+    },
     "origin": ((2,), np.float64),
     "direction": ((), np.int32),
 }
@@ -59,8 +61,14 @@ class Observations:
   def __len__(self) -> int:
     return int(np.shape(self.v0)[0])
 
-  def validate(self, source: str = "observations", fields=tuple(FIELDS), *,
-               dtypes: bool = True, allow_empty: bool = True) -> "Observations":
+  def validate(
+      self,
+      source: str = "observations",
+      fields=tuple(FIELDS),
+      *,
+      dtypes: bool = True,
+      allow_empty: bool = True,
+  ) -> "Observations":
     """Checks `fields` (shape (M, ...), dtype unless `dtypes` is False, finite; origin may
     be NaN where direction is 0); raises ValueError naming source and field. The signature
     of `Scenarios.validate`, so a consumer checks either."""
@@ -69,21 +77,29 @@ class Observations:
       shape, dtype = FIELDS[name]
       value = np.asarray(getattr(self, name))
       if value.shape != (m, *shape):
-        raise ValueError(f"{source}: field '{name}' has shape {value.shape}, "
-                         f"expected {(m, *shape)}")
+        raise ValueError(
+            f"{source}: field '{name}' has shape {value.shape}, " f"expected {(m, *shape)}"
+        )
       if dtypes and value.dtype != dtype:
-        raise ValueError(f"{source}: field '{name}' has dtype {value.dtype}, "
-                         f"expected {np.dtype(dtype)}")
-      finite = (np.isfinite(value).reshape(m, int(np.prod(shape))).all(-1)
-                if value.dtype.kind == "f" else np.ones(m, bool))
+        raise ValueError(
+            f"{source}: field '{name}' has dtype {value.dtype}, " f"expected {np.dtype(dtype)}"
+        )
+      finite = (
+          np.isfinite(value).reshape(m, int(np.prod(shape))).all(-1)
+          if value.dtype.kind == "f"
+          else np.ones(m, bool)
+      )
       if name == "origin":
         finite |= np.asarray(self.direction) == UNKNOWN_DIRECTION
       if not np.all(finite):
-        raise ValueError(f"{source}: field '{name}' holds NaN/inf (observation "
-                         f"{int(np.argmin(finite))})")
+        raise ValueError(
+            f"{source}: field '{name}' holds NaN/inf (observation " f"{int(np.argmin(finite))})"
+        )
     if "v0" in fields and np.any(np.asarray(self.v0) < 0):
-      raise ValueError(f"{source}: field 'v0' is negative (observation "
-                       f"{int(np.argmax(np.asarray(self.v0) < 0))})")
+      raise ValueError(
+          f"{source}: field 'v0' is negative (observation "
+          f"{int(np.argmax(np.asarray(self.v0) < 0))})"
+      )
     if "direction" in fields and not np.isin(self.direction, (0, 1, 2)).all():
       raise ValueError(f"{source}: field 'direction' outside {{0, 1, 2}}")
     if not allow_empty and m == 0:
@@ -96,8 +112,12 @@ def from_arrays(**arrays) -> Observations:
   origin NaN and direction 0 (unknown); validated."""
   m = len(arrays["v0"])
   defaults = {"origin": np.full((m, 2), np.nan), "direction": np.zeros(m)}
-  out = {name: np.asarray(arrays.get(name, defaults.get(name, np.full(m, -1)))).astype(
-      dtype, copy=False) for name, (_, dtype) in FIELDS.items()}
+  out = {
+      name: np.asarray(arrays.get(name, defaults.get(name, np.full(m, -1)))).astype(
+          dtype, copy=False
+      )
+      for name, (_, dtype) in FIELDS.items()
+  }
   return Observations(**out).validate()
 
 
@@ -122,8 +142,10 @@ def image_sign(direction) -> np.ndarray:
   """(M,) +1 for drivingDirection 2 (toward +x), -1 for 1."""
   direction = np.asarray(direction)
   if np.any((direction != 1) & (direction != 2)):
-    raise ValueError("to_image: an observation without an image frame (direction 0: made "
-                     "from Scenarios, not from a recording)")
+    raise ValueError(
+        "to_image: an observation without an image frame (direction 0: made "
+        "from Scenarios, not from a recording)"
+    )
   return np.where(direction == 2, 1.0, -1.0)
 
 
@@ -133,8 +155,9 @@ def to_image(observations: Observations, xy) -> np.ndarray:
   xy = np.asarray(xy, np.float64)
   sign = image_sign(observations.direction).reshape((-1,) + (1,) * (xy.ndim - 1))
   flip = np.concatenate([sign, -sign], -1)
-  origin = np.asarray(observations.origin).reshape((len(observations),)
-                                                   + (1,) * (xy.ndim - 2) + (2,))
+  origin = np.asarray(observations.origin).reshape(
+      (len(observations),) + (1,) * (xy.ndim - 2) + (2,)
+  )
   return origin + flip * xy
 
 

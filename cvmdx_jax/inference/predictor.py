@@ -91,25 +91,37 @@ def check_inputs(scenarios: Scenarios, seed) -> None:
   if not 0 <= seed < 2**32:
     raise UserError(f"seed={seed}: must be in [0, 2**32)")
   scenarios.validate(fields=INPUT_FIELDS, dtypes=False, allow_empty=False)
-  mask, v0, psi0 = (np.asarray(scenarios.mask), np.asarray(scenarios.v0, np.float64),
-                    np.asarray(scenarios.psi0, np.float64))
+  mask, v0, psi0 = (
+      np.asarray(scenarios.mask),
+      np.asarray(scenarios.v0, np.float64),
+      np.asarray(scenarios.psi0, np.float64),
+  )
   if not mask[:, 0, -1].all():
-    raise UserError(f"scenarios: field 'mask' marks the ego absent at t0 (mask[i, 0, -1]), "
-                     f"scenario {_first(~mask[:, 0, -1])}")
-  for name, value, bad, bound in (("psi0", psi0, np.abs(psi0) > _PI32, "|psi0| <= pi rad"),
-                                  ("v0", v0, v0 > MAX_V0, f"v0 <= {MAX_V0:.4g} m/s")):
+    raise UserError(
+        f"scenarios: field 'mask' marks the ego absent at t0 (mask[i, 0, -1]), "
+        f"scenario {_first(~mask[:, 0, -1])}"
+    )
+  for name, value, bad, bound in (
+      ("psi0", psi0, np.abs(psi0) > _PI32, "|psi0| <= pi rad"),
+      ("v0", v0, v0 > MAX_V0, f"v0 <= {MAX_V0:.4g} m/s"),
+  ):
     if bad.any():
       i = _first(bad)
-      raise UserError(f"scenarios: field '{name}' = {value[i]:.6g} (scenario {i}) outside the "
-                       f"highD reader's range, {bound}")
+      raise UserError(
+          f"scenarios: field '{name}' = {value[i]:.6g} (scenario {i}) outside the "
+          f"highD reader's range, {bound}"
+      )
   vx, vy = v0 * np.cos(psi0), v0 * np.sin(psi0)
   odd = (vx < _VX[0]) | (np.abs(vy) > _VY)
   if odd.any():
     i = _first(odd)
-    warnings.warn(f"{int(odd.sum())} scenarios have an ego velocity at t0 the highD reader "
-                  f"refuses (along the road >= {_VX[0]:g} m/s, |lateral| <= {_VY:g} m/s): "
-                  f"first scenario {i}, v0={v0[i]:.4g} m/s, psi0={psi0[i]:.4g} rad",
-                  UnusualScenarioWarning, stacklevel=3)
+    warnings.warn(
+        f"{int(odd.sum())} scenarios have an ego velocity at t0 the highD reader "
+        f"refuses (along the road >= {_VX[0]:g} m/s, |lateral| <= {_VY:g} m/s): "
+        f"first scenario {i}, v0={v0[i]:.4g} m/s, psi0={psi0[i]:.4g} rad",
+        UnusualScenarioWarning,
+        stacklevel=3,
+    )
 
 
 PROGRESSIVE_STAGES = ("progressive", "guided_progressive")
@@ -126,7 +138,8 @@ def check_student_steps(sampling: SamplingConfig, fingerprint) -> None:
         f"this student was distilled ({distill['stage']}) to sample in {distill['steps']} "
         f"steps with the 'distilled' sampler; sampling.sampler={sampling.sampler!r}, "
         f"sampling.steps={sampling.steps} would draw from another distribution: drop the "
-        "sampler / steps overrides")
+        "sampler / steps overrides"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,13 +168,22 @@ class PredictorOutput:
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def _predict(tokenizer: TokenizerBundle, denoiser: Denoiser, xi, mask, v0, psi0,
-             keys, schedule, *, config: SamplingConfig):
+def _predict(
+    tokenizer: TokenizerBundle,
+    denoiser: Denoiser,
+    xi,
+    mask,
+    v0,
+    psi0,
+    keys,
+    schedule,
+    *,
+    config: SamplingConfig,
+):
   q, _, delta = tokenizer.tokenize(xi, mask)
   conditioning = denoiser.config.diffusion.conditioning
   ego = None if conditioning == "token" else ego_motion.ego_features(xi, mask)
-  pred = predict_batch(denoiser, q, delta, v0, psi0, keys, ego, schedule=schedule,
-                       config=config)
+  pred = predict_batch(denoiser, q, delta, v0, psi0, keys, ego, schedule=schedule, config=config)
   return pred, q, delta
 
 
@@ -203,22 +225,33 @@ class Predictor:
   train_tokens: tokens_lib.Tokens | None = None
 
   def __post_init__(self):
-    if isinstance(self.chunk_size, bool) or not isinstance(self.chunk_size, numbers.Integral) \
-        or self.chunk_size < 1:
-      raise UserError(f"chunk_size={self.chunk_size!r}: expected a positive whole number of "
-                      "scenarios per call")
+    if (
+        isinstance(self.chunk_size, bool)
+        or not isinstance(self.chunk_size, numbers.Integral)
+        or self.chunk_size < 1
+    ):
+      raise UserError(
+          f"chunk_size={self.chunk_size!r}: expected a positive whole number of "
+          "scenarios per call"
+      )
     object.__setattr__(self, "chunk_size", int(self.chunk_size))
     check_sampling(self.sampling, self.denoiser.config.diffusion)
     check_student_steps(self.sampling, self.denoiser.fingerprint)
     mesh = sharding.data_mesh()
-    denoiser = dataclasses.replace(self.denoiser, params=unet1d.prepare_params(
-        self.denoiser.graphdef, self.denoiser.params))
+    denoiser = dataclasses.replace(
+        self.denoiser, params=unet1d.prepare_params(self.denoiser.graphdef, self.denoiser.params)
+    )
     object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
     object.__setattr__(self, "denoiser", sharding.replicate(denoiser, mesh))
 
   @classmethod
-  def load(cls, tokenizer_dir, diffusion_dir, sampling: SamplingConfig | None = None,
-           chunk_size: int = 256) -> "Predictor":
+  def load(
+      cls,
+      tokenizer_dir,
+      diffusion_dir,
+      sampling: SamplingConfig | None = None,
+      chunk_size: int = 256,
+  ) -> "Predictor":
     """Loads both runs and checks that they belong together: the denoiser must have been
     trained on tokens of exactly this tokeniser checkpoint (its fingerprint, which includes
     the dataset id, its step and the content id of its parameters).
@@ -234,16 +267,26 @@ class Predictor:
     """
     bundle = load_tokenizer(tokenizer_dir)
     denoiser = load_denoiser(diffusion_dir)
-    identity.check(denoiser.fingerprint.to_dict()["tokenizer"], bundle.checkpoint.to_dict(),
-                   f"denoiser {diffusion_dir} (not trained on tokens of tokeniser "
-                   f"{tokenizer_dir})", IncompatibleRunsError)
+    identity.check(
+        denoiser.fingerprint.to_dict()["tokenizer"],
+        bundle.checkpoint.to_dict(),
+        f"denoiser {diffusion_dir} (not trained on tokens of tokeniser " f"{tokenizer_dir})",
+        IncompatibleRunsError,
+    )
     sampling = sampling or denoiser.config.sampling
     train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
-    return cls(tokenizer=bundle, denoiser=denoiser, sampling=sampling, chunk_size=chunk_size,
-               delta_limit=float(np.max(train.delta)), train_tokens=train)
+    return cls(
+        tokenizer=bundle,
+        denoiser=denoiser,
+        sampling=sampling,
+        chunk_size=chunk_size,
+        delta_limit=float(np.max(train.delta)),
+        train_tokens=train,
+    )
 
-  def __call__(self, scenarios: Scenarios | Observations, seed: int = 0,
-               noise_ids=None) -> PredictorOutput:
+  def __call__(
+      self, scenarios: Scenarios | Observations, seed: int = 0, noise_ids=None
+  ) -> PredictorOutput:
     """Predicts every scenario; see the module docstring; inputs as `check_inputs`.
 
     `scenarios`: `Scenarios` or `Observations` (what is known at t0: fields xi, mask, v0,
@@ -255,8 +298,10 @@ class Predictor:
     check_inputs(scenarios, seed)
     ids = np.arange(len(scenarios))[:, None] if noise_ids is None else np.asarray(noise_ids)
     if ids.ndim != 2 or len(ids) != len(scenarios) or np.any((ids < 0) | (ids >= 2**32)):
-      raise ValueError(f"noise_ids: expected (M, K) ints in [0, 2**32) with M = "
-                       f"{len(scenarios)}, got shape {ids.shape}")
+      raise ValueError(
+          f"noise_ids: expected (M, K) ints in [0, 2**32) with M = "
+          f"{len(scenarios)}, got shape {ids.shape}"
+      )
     ids = ids.astype(np.uint32)
     mesh = sharding.data_mesh()
     chunk = -(-self.chunk_size // mesh.size) * mesh.size
@@ -267,22 +312,38 @@ class Predictor:
     outputs = []
     for start in tqdm(range(0, m, chunk), desc="predict", unit="chunk", disable=m <= chunk):
       idx = np.arange(start, min(start + chunk, m))
-      inputs = {"xi": np.asarray(scenarios.xi[idx], np.float32),
-                "mask": np.asarray(scenarios.mask[idx], bool),
-                "v0": np.asarray(scenarios.v0[idx], np.float32),
-                "psi0": np.asarray(scenarios.psi0[idx], np.float32), "index": ids[idx]}
+      inputs = {
+          "xi": np.asarray(scenarios.xi[idx], np.float32),
+          "mask": np.asarray(scenarios.mask[idx], bool),
+          "v0": np.asarray(scenarios.v0[idx], np.float32),
+          "psi0": np.asarray(scenarios.psi0[idx], np.float32),
+          "index": ids[idx],
+      }
       padded, weight = sharding.pad_batch(inputs, chunk)
       keys = jax.vmap(functools.partial(_fold_ids, base))(jnp.asarray(padded.pop("index")))
       batch = sharding.shard_batch({**padded, "keys": keys}, mesh)
-      out = _predict(self.tokenizer, self.denoiser, batch["xi"], batch["mask"], batch["v0"],
-                     batch["psi0"], batch["keys"], schedule, config=self.sampling)
+      out = _predict(
+          self.tokenizer,
+          self.denoiser,
+          batch["xi"],
+          batch["mask"],
+          batch["v0"],
+          batch["psi0"],
+          batch["keys"],
+          schedule,
+          config=self.sampling,
+      )
       n = int(weight.sum())
       outputs.append(jax.tree.map(lambda a: np.asarray(a)[:n], out))
     pred, q, delta = jax.tree.map(lambda *xs: np.concatenate(xs), *outputs)
     ood = ~(delta <= self.delta_limit)
     if ood.any():
-      warnings.warn(f"{int(ood.sum())} of {m} scenarios have an uncertainty delta beyond the "
-                    f"tokeniser's training range (max {self.delta_limit:.3g}); their "
-                    f"predictions extrapolate: scenarios {np.flatnonzero(ood)[:20].tolist()}"
-                    f"{' ...' if ood.sum() > 20 else ''}", OutOfDistributionWarning, stacklevel=2)
+      warnings.warn(
+          f"{int(ood.sum())} of {m} scenarios have an uncertainty delta beyond the "
+          f"tokeniser's training range (max {self.delta_limit:.3g}); their "
+          f"predictions extrapolate: scenarios {np.flatnonzero(ood)[:20].tolist()}"
+          f"{' ...' if ood.sum() > 20 else ''}",
+          OutOfDistributionWarning,
+          stacklevel=2,
+      )
     return PredictorOutput(prediction=pred, q=q, delta=delta, out_of_distribution=ood)

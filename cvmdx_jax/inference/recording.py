@@ -21,8 +21,17 @@ from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import observations as obs_lib
 from cvmdx_jax.storage import atomic
 
-TABLE_COLUMNS = ("recording", "frame", "track_id", "kind", "hypothesis", "probability", "t",
-                 "x", "y")
+TABLE_COLUMNS = (
+    "recording",
+    "frame",
+    "track_id",
+    "kind",
+    "hypothesis",
+    "probability",
+    "t",
+    "x",
+    "y",
+)
 TABLE_FORMATS = (".parquet", ".csv.gz")
 
 
@@ -57,9 +66,14 @@ class VehiclePredictions:
 
 def concatenate(parts) -> VehiclePredictions:
   """`VehiclePredictions` of a sequence of them, along M."""
-  return VehiclePredictions(**{f.name: None if getattr(parts[0], f.name) is None
-                               else np.concatenate([getattr(p, f.name) for p in parts])
-                               for f in dataclasses.fields(VehiclePredictions)})
+  return VehiclePredictions(
+      **{
+          f.name: None
+          if getattr(parts[0], f.name) is None
+          else np.concatenate([getattr(p, f.name) for p in parts])
+          for f in dataclasses.fields(VehiclePredictions)
+      }
+  )
 
 
 def noise_ids(observations: obs_lib.Observations) -> np.ndarray:
@@ -67,19 +81,23 @@ def noise_ids(observations: obs_lib.Observations) -> np.ndarray:
   return np.stack([observations.frame, observations.track_id], -1).astype(np.int64)
 
 
-def predict(predictor, observations: obs_lib.Observations, seed: int = 0,
-            samples: bool = False) -> VehiclePredictions:
+def predict(
+    predictor, observations: obs_lib.Observations, seed: int = 0, samples: bool = False
+) -> VehiclePredictions:
   """`predictor` (a `Predictor`) on `observations` (with an image frame: `data.frames`,
   `inference.stream`), mapped to the recording's image frame."""
   out = predictor(observations, seed=seed, noise_ids=noise_ids(observations))
   hyp = out.hypotheses
   to_image = lambda xy: obs_lib.to_image(observations, np.asarray(xy))
   return VehiclePredictions(
-      recording_id=np.asarray(observations.recording_id), frame=np.asarray(observations.frame),
-      track_id=np.asarray(observations.track_id), means=to_image(hyp.means),
+      recording_id=np.asarray(observations.recording_id),
+      frame=np.asarray(observations.frame),
+      track_id=np.asarray(observations.track_id),
+      means=to_image(hyp.means),
       probs=np.asarray(hyp.probs, np.float64),
       samples=to_image(out.prediction.trajectories) if samples else None,
-      out_of_distribution=np.asarray(out.out_of_distribution))
+      out_of_distribution=np.asarray(out.out_of_distribution),
+  )
 
 
 def table(preds: VehiclePredictions) -> pd.DataFrame:
@@ -98,11 +116,19 @@ def _rows(preds, kind: str, paths: np.ndarray, probs: np.ndarray) -> pd.DataFram
   steps = paths.shape[2]
   rep = lambda x: np.repeat(x, steps)
   xy = paths[m, slot].reshape(-1, 2)
-  return pd.DataFrame({
-      "recording": rep(preds.recording_id[m]), "frame": rep(preds.frame[m]),
-      "track_id": rep(preds.track_id[m]), "kind": kind, "hypothesis": rep(slot),
-      "probability": rep(probs[m, slot]), "t": np.tile(obs_lib.horizon_s(), len(m)),
-      "x": xy[:, 0], "y": xy[:, 1]})
+  return pd.DataFrame(
+      {
+          "recording": rep(preds.recording_id[m]),
+          "frame": rep(preds.frame[m]),
+          "track_id": rep(preds.track_id[m]),
+          "kind": kind,
+          "hypothesis": rep(slot),
+          "probability": rep(probs[m, slot]),
+          "t": np.tile(obs_lib.horizon_s(), len(m)),
+          "x": xy[:, 0],
+          "y": xy[:, 1],
+      }
+  )
 
 
 def check_table_path(path) -> None:
@@ -115,8 +141,9 @@ def check_table_path(path) -> None:
     try:
       import pyarrow  # noqa: F401  (optional: Parquet only where it is installed)
     except ImportError as err:
-      raise UserError(f"--out={name}: Parquet needs pyarrow, which is not installed; "
-                       "write .csv.gz") from err
+      raise UserError(
+          f"--out={name}: Parquet needs pyarrow, which is not installed; " "write .csv.gz"
+      ) from err
 
 
 def write_table(frame: pd.DataFrame, path) -> None:
@@ -126,8 +153,9 @@ def write_table(frame: pd.DataFrame, path) -> None:
   if str(path).endswith(".parquet"):
     frame.to_parquet(buffer, index=False)
   else:
-    frame.to_csv(buffer, index=False, float_format="%.4f",
-                 compression={"method": "gzip", "mtime": 0})
+    frame.to_csv(
+        buffer, index=False, float_format="%.4f", compression={"method": "gzip", "mtime": 0}
+    )
   atomic.write_bytes(Path(path), buffer.getvalue())
 
 
@@ -140,18 +168,27 @@ def temporal_consistency(preds: VehiclePredictions, step: int) -> np.ndarray:
   horizon = mean.shape[1]
   if not 0 < step < horizon:
     raise ValueError(f"temporal_consistency: step {step} not in 1..{horizon - 1}")
-  key = {(int(r), int(t), int(f)): i for i, (r, t, f) in enumerate(
-      zip(preds.recording_id, preds.track_id, preds.frame))}
+  key = {
+      (int(r), int(t), int(f)): i
+      for i, (r, t, f) in enumerate(zip(preds.recording_id, preds.track_id, preds.frame))
+  }
   pairs = [(i, key[(r, t, f + step)]) for (r, t, f), i in key.items() if (r, t, f + step) in key]
   if not pairs:
     return np.zeros(0)
   first, second = np.asarray(pairs).T
-  change = np.linalg.norm(mean[first, step:] - mean[second, :horizon - step], axis=-1)
+  change = np.linalg.norm(mean[first, step:] - mean[second, : horizon - step], axis=-1)
   return change.mean(-1)
 
 
-def predict_frames(predictor, rec, frames, seed: int = 0, samples: bool = False,
-                   every: int | None = None, section=None) -> tuple[VehiclePredictions, dict]:
+def predict_frames(
+    predictor,
+    rec,
+    frames,
+    seed: int = 0,
+    samples: bool = False,
+    every: int | None = None,
+    section=None,
+) -> tuple[VehiclePredictions, dict]:
   """Every vehicle with 3 s of history at each of `frames` of recording `rec`
   (`data.highd.Recording`; with `section` (x0, x1) only those whose image-frame centre x
   lies in it), in batches of `predictor.chunk_size` over vehicles and frames (observations
@@ -172,20 +209,30 @@ def predict_frames(predictor, rec, frames, seed: int = 0, samples: bool = False,
     raise UserError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
   block = predictor.chunk_size  # one jitted call each: memory bounded by the samples of one
   start, cpu = time.perf_counter(), time.process_time()
-  parts = [predict(predictor, obs_lib.from_recording(rec, rows[i:i + block]), seed=seed,
-                   samples=samples)
-           for i in tqdm(range(0, len(rows), block), desc="predict", unit="chunk",
-                         disable=len(rows) <= block)]
+  parts = [
+      predict(
+          predictor, obs_lib.from_recording(rec, rows[i : i + block]), seed=seed, samples=samples
+      )
+      for i in tqdm(
+          range(0, len(rows), block), desc="predict", unit="chunk", disable=len(rows) <= block
+      )
+  ]
   preds = concatenate(parts)
   seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
-  summary = {"predictions": len(preds), "vehicles": int(len(np.unique(preds.track_id))),
-             "frames": int(len(np.unique(preds.frame))), "seconds": round(seconds, 3),
-             "cpu_seconds": round(cpu, 3),
-             "predictions_per_second": round(len(preds) / seconds, 2),
-             "out_of_distribution": int(preds.out_of_distribution.sum())}
+  summary = {
+      "predictions": len(preds),
+      "vehicles": int(len(np.unique(preds.track_id))),
+      "frames": int(len(np.unique(preds.frame))),
+      "seconds": round(seconds, 3),
+      "cpu_seconds": round(cpu, 3),
+      "predictions_per_second": round(len(preds) / seconds, 2),
+      "out_of_distribution": int(preds.out_of_distribution.sum()),
+  }
   if every is not None and 0 < every < preds.means.shape[2]:
     change = temporal_consistency(preds, every)
-    summary["consistency_m"] = {"pairs": len(change),
-                                "mean": float(change.mean()) if len(change) else None,
-                                "median": float(np.median(change)) if len(change) else None}
+    summary["consistency_m"] = {
+        "pairs": len(change),
+        "mean": float(change.mean()) if len(change) else None,
+        "median": float(np.median(change)) if len(change) else None,
+    }
   return preds, summary

@@ -14,8 +14,14 @@ import jax.numpy as jnp
 
 from cvmdx_jax import constants, ego_motion, targets, vmm
 from cvmdx_jax.config.sampling import SamplingConfig, check_sampling
-from cvmdx_jax.diffusion import (Schedule, cond_uncond_v_fn, get_sampler, guidance_weight,
-                                 guided_v_fn, official_ddim_sample)
+from cvmdx_jax.diffusion import (
+    Schedule,
+    cond_uncond_v_fn,
+    get_sampler,
+    guidance_weight,
+    guided_v_fn,
+    official_ddim_sample,
+)
 from cvmdx_jax.diffusion.distillation import student_cond
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference.bundles import Denoiser
@@ -44,8 +50,19 @@ class Prediction:
   hypotheses: Hypotheses
 
 
-def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null_token: int,
-                    config: SamplingConfig, ego=None, guidance_input: bool = False):
+def sample_controls(
+    graphdef,
+    params,
+    q,
+    delta,
+    key,
+    *,
+    schedule: Schedule,
+    null_token: int,
+    config: SamplingConfig,
+    ego=None,
+    guidance_input: bool = False,
+):
   """N normalised control samples for one scenario: q, delta scalars -> (N, 125, 2).
 
   ego: (F,) ego-motion features for a U-Net with cond_dim = F, or (N, F) one row a sample
@@ -63,23 +80,38 @@ def sample_controls(graphdef, params, q, delta, key, *, schedule: Schedule, null
   shape = (n, constants.T_PRED, 2)
   if guidance_input:
     qs = jnp.full((n,), q)
-    v_fn = lambda x_t, t: apply_unet(graphdef, params, x_t, t, qs, cond=student_cond(
-        cond(x_t), guidance_weight(t, delta, schedule.num_steps, config.guidance)))
+    v_fn = lambda x_t, t: apply_unet(
+        graphdef,
+        params,
+        x_t,
+        t,
+        qs,
+        cond=student_cond(
+            cond(x_t), guidance_weight(t, delta, schedule.num_steps, config.guidance)
+        ),
+    )
     return _sample(v_fn, key, shape, schedule, config)
   if config.mode == "official":
     return official_ddim_sample(
-        cond_uncond_v_fn(model_fn, jnp.full((n,), q), null_token), key, shape, schedule,
-        steps=config.steps, eta=config.eta, clip_x0=config.clip_x0,
-        w_start=config.guidance.w_min, w_end=config.guidance.w_max_base)
-  v_fn = guided_v_fn(model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule,
-                     config.guidance)
+        cond_uncond_v_fn(model_fn, jnp.full((n,), q), null_token),
+        key,
+        shape,
+        schedule,
+        steps=config.steps,
+        eta=config.eta,
+        clip_x0=config.clip_x0,
+        w_start=config.guidance.w_min,
+        w_end=config.guidance.w_max_base,
+    )
+  v_fn = guided_v_fn(
+      model_fn, jnp.full((n,), q), null_token, jnp.full((n,), delta), schedule, config.guidance
+  )
   return _sample(v_fn, key, shape, schedule, config)
 
 
 def _sample(v_fn, key, shape, schedule: Schedule, config: SamplingConfig):
   """x0 samples of `shape` from the guided `v_fn` with the sampler of `config`."""
-  sample = get_sampler(config.sampler, steps=config.steps, eta=config.eta,
-                       clip_x0=config.clip_x0)
+  sample = get_sampler(config.sampler, steps=config.steps, eta=config.eta, clip_x0=config.clip_x0)
   return sample(v_fn, key, shape, schedule)
 
 
@@ -92,8 +124,18 @@ def draw_intents(logits, key, n: int):
   return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[-1] - 1)
 
 
-def predict_batch(denoiser: Denoiser, q, delta, v0, psi0, keys, ego=None, *,
-                  schedule: Schedule, config: SamplingConfig = SamplingConfig()) -> Prediction:
+def predict_batch(
+    denoiser: Denoiser,
+    q,
+    delta,
+    v0,
+    psi0,
+    keys,
+    ego=None,
+    *,
+    schedule: Schedule,
+    config: SamplingConfig = SamplingConfig(),
+) -> Prediction:
   """Samples, rolls out and clusters predictions for B scenarios.
 
   Args:
@@ -122,17 +164,36 @@ def predict_batch(denoiser: Denoiser, q, delta, v0, psi0, keys, ego=None, *,
     keys, intent_keys = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
     logits = apply_intent(graphdef, params, ego) + jnp.log(jnp.asarray(config.intent_prior))
     intents = jax.vmap(draw_intents, (0, 0, None))(logits, intent_keys, config.num_samples)
-    film = jnp.concatenate([jnp.broadcast_to(ego[:, None], intents.shape + ego.shape[-1:]),
-                            jax.nn.one_hot(intents, logits.shape[-1], dtype=ego.dtype)], -1)
-  x0 = jax.vmap(lambda qi, di, ki, ei: sample_controls(
-      graphdef, params, qi, di, ki, schedule=schedule, null_token=denoiser.null_token,
-      config=config, ego=ei, guidance_input=denoiser_config.guidance_input))(
-          q, delta, keys, film)
+    film = jnp.concatenate(
+        [
+            jnp.broadcast_to(ego[:, None], intents.shape + ego.shape[-1:]),
+            jax.nn.one_hot(intents, logits.shape[-1], dtype=ego.dtype),
+        ],
+        -1,
+    )
+  x0 = jax.vmap(
+      lambda qi, di, ki, ei: sample_controls(
+          graphdef,
+          params,
+          qi,
+          di,
+          ki,
+          schedule=schedule,
+          null_token=denoiser.null_token,
+          config=config,
+          ego=ei,
+          guidance_input=denoiser_config.guidance_input,
+      )
+  )(q, delta, keys, film)
   controls = targets.denormalize_controls(x0, denoiser_config.control_scale)
   if ego_motion.uses_residual(conditioning):
-    controls = controls + ego_motion.residual_controls(
-        ego, denoiser_config.residual_decay_s)[:, None]
+    controls = (
+        controls + ego_motion.residual_controls(ego, denoiser_config.residual_decay_s)[:, None]
+    )
   trajectories = vmm.rollout(controls, v0[:, None], psi0[:, None])
-  return Prediction(controls=controls, trajectories=trajectories,
-                    mean=jnp.mean(trajectories, axis=1),
-                    hypotheses=fit_hypotheses(trajectories, config=config.hypotheses))
+  return Prediction(
+      controls=controls,
+      trajectories=trajectories,
+      mean=jnp.mean(trajectories, axis=1),
+      hypotheses=fit_hypotheses(trajectories, config=config.hypotheses),
+  )

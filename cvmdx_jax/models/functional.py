@@ -24,4 +24,3 @@ def init(build: Build, key: jax.Array) -> tuple[nnx.GraphDef, dict]:
 def make_graphdef(build: Build) -> nnx.GraphDef:
   """The graph definition of `build`'s model; no parameters are allocated."""
   return nnx.split(nnx.eval_shape(lambda: build(nnx.Rngs(0))), nnx.Param)[0]
-

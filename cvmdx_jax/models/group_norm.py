@@ -105,7 +105,8 @@ def _group_norm_backward(groups, epsilon, residuals, dy):
   del groups, epsilon  # in mean and rstd already
   x, scale, mean, rstd = residuals
   d_scale, d_bias, k_dn, k_x, k_1 = _backward_coefficients(
-      jnp.sum(dy, axis=1), jnp.sum(dy * x, axis=1), x.shape[1], scale, mean, rstd)
+      jnp.sum(dy, axis=1), jnp.sum(dy * x, axis=1), x.shape[1], scale, mean, rstd
+  )
   return dy * _bcast(k_dn) + x * _bcast(k_x) + _bcast(k_1), d_scale, d_bias
 
 
@@ -127,8 +128,10 @@ def _modulated(x, a, shift, mod_scale, mod_shift):
 def _group_norm_silu_forward(x, scale, bias, mod_scale, mod_shift, groups, epsilon):
   mean, rstd = _statistics(x, groups, epsilon)
   a, shift = _coefficients(scale, bias, mean, rstd)
-  return (jax.nn.silu(_modulated(x, a, shift, mod_scale, mod_shift)),
-          (x, scale, mod_scale, mod_shift, mean, rstd, a, shift))
+  return (
+      jax.nn.silu(_modulated(x, a, shift, mod_scale, mod_shift)),
+      (x, scale, mod_scale, mod_shift, mean, rstd, a, shift),
+  )
 
 
 def _group_norm_silu_backward(groups, epsilon, residuals, dy):
@@ -136,12 +139,13 @@ def _group_norm_silu_backward(groups, epsilon, residuals, dy):
   x, scale, mod_scale, mod_shift, mean, rstd, a, shift = residuals
   u = _modulated(x, a, shift, mod_scale, mod_shift)
   sig = jax.nn.sigmoid(u)
-  du = dy * sig * (1.0 + u * (1.0 - sig))                                  # (B, L, C)
-  r1, r2 = jnp.sum(du, axis=1), jnp.sum(du * x, axis=1)                  # (B, C)
-  d_mod_scale, d_mod_shift = a * r2 + shift * r1, r1                    # sum_L du xhat', du
+  du = dy * sig * (1.0 + u * (1.0 - sig))  # (B, L, C)
+  r1, r2 = jnp.sum(du, axis=1), jnp.sum(du * x, axis=1)  # (B, C)
+  d_mod_scale, d_mod_shift = a * r2 + shift * r1, r1  # sum_L du xhat', du
   # the GroupNorm output's cotangent is dn = du m
   d_scale, d_bias, k_dn, k_x, k_1 = _backward_coefficients(
-      mod_scale * r1, mod_scale * r2, x.shape[1], scale, mean, rstd)
+      mod_scale * r1, mod_scale * r2, x.shape[1], scale, mean, rstd
+  )
   dx = du * _bcast(k_dn * mod_scale) + x * _bcast(k_x) + _bcast(k_1)
   return dx, d_scale, d_bias, d_mod_scale, d_mod_shift
 
@@ -169,8 +173,12 @@ def plain_group_norm_silu(x, scale, bias, mod_scale, mod_shift, groups: int, eps
 def _select(fast, plain, groups: int, epsilon: float, *args):
   """fast or plain (each taking `groups, epsilon` last) on args, as the
   `group_norm_backward` performance option says."""
-  return performance.select("group_norm_backward", lambda *a: fast(*a, groups, epsilon),
-                            lambda *a: plain(*a, groups, epsilon), *args)
+  return performance.select(
+      "group_norm_backward",
+      lambda *a: fast(*a, groups, epsilon),
+      lambda *a: plain(*a, groups, epsilon),
+      *args,
+  )
 
 
 class GroupNorm(nnx.Module):
@@ -184,13 +192,29 @@ class GroupNorm(nnx.Module):
     self.bias = nnx.Param(jnp.zeros((num_features,)))
 
   def __call__(self, x):
-    return _select(group_norm, plain_group_norm, self.num_groups, self.epsilon,
-                   x, self.scale[...], self.bias[...])
+    return _select(
+        group_norm,
+        plain_group_norm,
+        self.num_groups,
+        self.epsilon,
+        x,
+        self.scale[...],
+        self.bias[...],
+    )
 
   def silu(self, x, mod_scale=None, mod_shift=None):
     """silu(self(x) mod_scale + mod_shift); mod_* (B, C), default ones / zeros."""
     b, c = x.shape[0], x.shape[-1]
     mod_scale = jnp.ones((b, c), x.dtype) if mod_scale is None else mod_scale
     mod_shift = jnp.zeros((b, c), x.dtype) if mod_shift is None else mod_shift
-    return _select(group_norm_silu, plain_group_norm_silu, self.num_groups, self.epsilon,
-                   x, self.scale[...], self.bias[...], mod_scale, mod_shift)
+    return _select(
+        group_norm_silu,
+        plain_group_norm_silu,
+        self.num_groups,
+        self.epsilon,
+        x,
+        self.scale[...],
+        self.bias[...],
+        mod_scale,
+        mod_shift,
+    )

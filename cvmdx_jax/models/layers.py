@@ -40,17 +40,18 @@ class ResBlock(nnx.Module):
   """GroupNorm-SiLU-Conv, FiLM (scale, shift) from the embedding, GroupNorm-SiLU-
   Dropout-Conv (zero-initialised), plus a 1x1 skip where channels change."""
 
-  def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
-               *, rngs: nnx.Rngs):
+  def __init__(
+      self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float, *, rngs: nnx.Rngs
+  ):
     self.norm1 = group_norm(in_ch, groups)
     self.conv1 = nnx.Conv(in_ch, out_ch, kernel_size=(3,), rngs=rngs)
     self.film = nnx.Linear(emb_dim, 2 * out_ch, rngs=rngs)
     self.norm2 = group_norm(out_ch, groups)
     self.dropout = nnx.Dropout(dropout)
-    self.conv2 = nnx.Conv(out_ch, out_ch, kernel_size=(3,), kernel_init=nnx.initializers.zeros,
-                          rngs=rngs)
-    self.skip = (nnx.Conv(in_ch, out_ch, kernel_size=(1,), rngs=rngs) if in_ch != out_ch
-                 else None)
+    self.conv2 = nnx.Conv(
+        out_ch, out_ch, kernel_size=(3,), kernel_init=nnx.initializers.zeros, rngs=rngs
+    )
+    self.skip = nnx.Conv(in_ch, out_ch, kernel_size=(1,), rngs=rngs) if in_ch != out_ch else None
 
   def prepare(self):
     """For inference: both width-3 kernels `winograd.prepare_kernel`ed (idempotent)."""
@@ -70,8 +71,17 @@ class ResBlock(nnx.Module):
 class ResAttnBlock(nnx.Module):
   """A residual block, followed by self-attention when `num_heads` > 0."""
 
-  def __init__(self, in_ch: int, out_ch: int, emb_dim: int, groups: int, dropout: float,
-               num_heads: int, *, rngs: nnx.Rngs):
+  def __init__(
+      self,
+      in_ch: int,
+      out_ch: int,
+      emb_dim: int,
+      groups: int,
+      dropout: float,
+      num_heads: int,
+      *,
+      rngs: nnx.Rngs,
+  ):
     self.res = ResBlock(in_ch, out_ch, emb_dim, groups, dropout, rngs=rngs)
     self.attn = AttentionBlock(out_ch, num_heads, groups, rngs=rngs) if num_heads else None
 
@@ -85,8 +95,9 @@ class AttentionBlock(nnx.Module):
 
   def __init__(self, channels: int, num_heads: int, groups: int, *, rngs: nnx.Rngs):
     self.norm = group_norm(channels, groups)
-    self.attn = nnx.MultiHeadAttention(num_heads=num_heads, in_features=channels,
-                                       decode=False, rngs=rngs)
+    self.attn = nnx.MultiHeadAttention(
+        num_heads=num_heads, in_features=channels, decode=False, rngs=rngs
+    )
 
   def __call__(self, x):
     return x + self.attn(self.norm(x))
@@ -97,8 +108,9 @@ class Downsample(nnx.Module):
   centred on input 2i."""
 
   def __init__(self, channels: int, *, rngs: nnx.Rngs):
-    self.conv = nnx.Conv(channels, channels, kernel_size=(3,), strides=(2,),
-                         padding=((1, 1),), rngs=rngs)
+    self.conv = nnx.Conv(
+        channels, channels, kernel_size=(3,), strides=(2,), padding=((1, 1),), rngs=rngs
+    )
 
   def __call__(self, x):
     return self.conv(x)
@@ -123,8 +135,9 @@ class Upsample(nnx.Module):
     """(3, C, 2 C): both phases' kernels side by side."""
     w0, w1, w2 = self.conv.kernel[...]
     zero = jnp.zeros_like(w0)
-    return jnp.concatenate([jnp.stack([w0, w1 + w2, zero]),     # output 2i
-                            jnp.stack([zero, w0 + w1, w2])], -1)  # output 2i + 1
+    return jnp.concatenate(
+        [jnp.stack([w0, w1 + w2, zero]), jnp.stack([zero, w0 + w1, w2])], -1  # output 2i
+    )  # output 2i + 1
 
   def prepare(self):
     """For inference: `conv.kernel` becomes the prepared phase kernel where that is

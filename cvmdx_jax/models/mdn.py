@@ -37,9 +37,12 @@ class MixtureDensityMLP(mc.MultipleChoiceMLP):
   def __init__(self, config: MixtureDensityConfig, *, rngs: nnx.Rngs):
     super().__init__(config, rngs=rngs)
     out_init = nnx.initializers.variance_scaling(mc.OUTPUT_INIT_SCALE, "fan_in", "normal")
-    self.log_std = nnx.Linear(config.hidden[-1],
-                              config.num_hypotheses * constants.T_PRED * 2,
-                              kernel_init=out_init, rngs=rngs)
+    self.log_std = nnx.Linear(
+        config.hidden[-1],
+        config.num_hypotheses * constants.T_PRED * 2,
+        kernel_init=out_init,
+        rngs=rngs,
+    )
 
   def __call__(self, q, delta, ego):
     h = self.features(q, delta, ego)

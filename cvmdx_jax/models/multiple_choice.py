@@ -15,7 +15,6 @@ Functional form (`cvmdx_jax.models.functional`): `init` -> (graphdef, params),
 2) m, probabilities (B, K)).
 """
 
-
 import jax
 import jax.numpy as jnp
 from flax import nnx
@@ -37,8 +36,9 @@ class MultipleChoiceMLP(nnx.Module):
     widths = (config.input_dim, *config.hidden)
     self.layers = nnx.List([nnx.Linear(a, b, rngs=rngs) for a, b in zip(widths, widths[1:])])
     out_init = nnx.initializers.variance_scaling(OUTPUT_INIT_SCALE, "fan_in", "normal")
-    self.controls = nnx.Linear(widths[-1], config.num_hypotheses * constants.T_PRED * 2,
-                               kernel_init=out_init, rngs=rngs)
+    self.controls = nnx.Linear(
+        widths[-1], config.num_hypotheses * constants.T_PRED * 2, kernel_init=out_init, rngs=rngs
+    )
     self.logits = nnx.Linear(widths[-1], config.num_hypotheses, rngs=rngs)
 
   def __call__(self, q, delta, ego):
@@ -46,8 +46,9 @@ class MultipleChoiceMLP(nnx.Module):
 
   def features(self, q, delta, ego):
     """The last hidden layer (B, hidden[-1]) of q (B,), delta (B,), ego (B, F)."""
-    h = jnp.concatenate([ego, jnp.log1p(jnp.maximum(delta, 0.0))[:, None],
-                         self.token_embed(q)], axis=-1)
+    h = jnp.concatenate(
+        [ego, jnp.log1p(jnp.maximum(delta, 0.0))[:, None], self.token_embed(q)], axis=-1
+    )
     for layer in self.layers:
       h = jax.nn.gelu(layer(h))
     return h

@@ -29,11 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax.config.models import UNetConfig
-from cvmdx_jax.models import torch_zip
-from cvmdx_jax.models.official_state import (OFFICIAL_NUM_HEADS, OfficialCheckpointError,
-                                             unet_config, unwrap_state_dict)
-from cvmdx_jax.models import unet1d
-
+from cvmdx_jax.models import torch_zip, unet1d
+from cvmdx_jax.models.official_state import (
+    OFFICIAL_NUM_HEADS,
+    OfficialCheckpointError,
+    unet_config,
+    unwrap_state_dict,
+)
 
 _REVERSED = lambda shape: tuple(shape)[::-1]  # our conv / linear kernel -> torch weight
 _SAME = tuple
@@ -45,13 +47,20 @@ def _attention(state, p: str, heads: int, get) -> dict[str, tuple]:
   proj, proj_b = get(f"{p}.proj_out.weight", 3), get(f"{p}.proj_out.bias", 1)
   scale, bias = get(f"{p}.norm.weight", 1), get(f"{p}.norm.bias", 1)
   c = w.shape[1]
-  want = {f"{p}.qkv.weight": (3 * c, c, 1), f"{p}.qkv.bias": (3 * c,),
-          f"{p}.proj_out.weight": (c, c, 1), f"{p}.proj_out.bias": (c,),
-          f"{p}.norm.weight": (c,), f"{p}.norm.bias": (c,)}
+  want = {
+      f"{p}.qkv.weight": (3 * c, c, 1),
+      f"{p}.qkv.bias": (3 * c,),
+      f"{p}.proj_out.weight": (c, c, 1),
+      f"{p}.proj_out.bias": (c,),
+      f"{p}.norm.weight": (c,),
+      f"{p}.norm.bias": (c,),
+  }
   for name, shape in want.items():
     if state[name].shape != shape:
-      raise OfficialCheckpointError(f"parameter {name} has shape {state[name].shape}; an "
-                                    f"attention block of {c} channels has {shape}")
+      raise OfficialCheckpointError(
+          f"parameter {name} has shape {state[name].shape}; an "
+          f"attention block of {c} channels has {shape}"
+      )
   if c % heads:
     raise OfficialCheckpointError(f"{p} has {c} channels, not divisible by {heads} heads")
   d = c // heads
@@ -59,15 +68,22 @@ def _attention(state, p: str, heads: int, get) -> dict[str, tuple]:
   b = b.reshape(heads, 3, d)
   qkv_w = lambda shape: (3 * shape[1] * shape[2], shape[0], 1)  # (in, head, d) -> torch
   qkv_b = lambda shape: (3 * shape[0] * shape[1],)
-  out = {"norm.scale": (f"{p}.norm.weight", _SAME, scale),
-         "norm.bias": (f"{p}.norm.bias", _SAME, bias)}
+  out = {
+      "norm.scale": (f"{p}.norm.weight", _SAME, scale),
+      "norm.bias": (f"{p}.norm.bias", _SAME, bias),
+  }
   for s, name in enumerate(("query", "key", "value")):
-    out[f"attn.{name}.kernel"] = (f"{p}.qkv.weight", qkv_w,
-                                  np.transpose(w[:, s], (2, 0, 1)))  # (in, head, head dim)
+    out[f"attn.{name}.kernel"] = (
+        f"{p}.qkv.weight",
+        qkv_w,
+        np.transpose(w[:, s], (2, 0, 1)),
+    )  # (in, head, head dim)
     out[f"attn.{name}.bias"] = (f"{p}.qkv.bias", qkv_b, b[:, s])
-  out["attn.out.kernel"] = (f"{p}.proj_out.weight",
-                            lambda shape: (shape[2], shape[0] * shape[1], 1),
-                            np.transpose(proj[:, :, 0].reshape(c, heads, d), (1, 2, 0)))
+  out["attn.out.kernel"] = (
+      f"{p}.proj_out.weight",
+      lambda shape: (shape[2], shape[0] * shape[1], 1),
+      np.transpose(proj[:, :, 0].reshape(c, heads, d), (1, 2, 0)),
+  )
   out["attn.out.bias"] = (f"{p}.proj_out.bias", _SAME, proj_b)
   return out
 
@@ -83,24 +99,31 @@ def _converted(state, cfg: UNetConfig) -> tuple[dict[str, tuple], set[str]]:
     if name not in state:
       raise OfficialCheckpointError(f"official parameter {name} missing from the state dict")
     if state[name].ndim != ndim:
-      raise OfficialCheckpointError(f"parameter {name} has shape {state[name].shape}; its "
-                                    f"layer needs {ndim} dimensions")
+      raise OfficialCheckpointError(
+          f"parameter {name} has shape {state[name].shape}; its " f"layer needs {ndim} dimensions"
+      )
     return state[name]
 
   def put(ours, arrays):
     out.update({f"{ours}.{k}": v for k, v in arrays.items()})
 
   def conv(p):
-    return {"kernel": (f"{p}.weight", _REVERSED, np.transpose(get(f"{p}.weight", 3), (2, 1, 0))),
-            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
+    return {
+        "kernel": (f"{p}.weight", _REVERSED, np.transpose(get(f"{p}.weight", 3), (2, 1, 0))),
+        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+    }
 
   def linear(p):
-    return {"kernel": (f"{p}.weight", _REVERSED, get(f"{p}.weight", 2).T),
-            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
+    return {
+        "kernel": (f"{p}.weight", _REVERSED, get(f"{p}.weight", 2).T),
+        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+    }
 
   def norm(p):
-    return {"scale": (f"{p}.weight", _SAME, get(f"{p}.weight", 1)),
-            "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1))}
+    return {
+        "scale": (f"{p}.weight", _SAME, get(f"{p}.weight", 1)),
+        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+    }
 
   def res(p, ours):
     put(f"{ours}.norm1", norm(f"{p}.in_layers.0"))
@@ -153,8 +176,9 @@ def _path_name(path) -> str:
   return ".".join(parts[:-1] if parts and parts[-1] == "value" else parts)
 
 
-def params_from_state_dict(state: dict[str, np.ndarray], cfg: UNetConfig,
-                           where: str = "state dict"):
+def params_from_state_dict(
+    state: dict[str, np.ndarray], cfg: UNetConfig, where: str = "state dict"
+):
   """The U-Net parameters (the pytree of `unet1d.init_unet(cfg, key)[1]`); every
   shape is compared with the architecture's (`jax.eval_shape`) before any is built.
 
@@ -170,21 +194,28 @@ def params_from_state_dict(state: dict[str, np.ndarray], cfg: UNetConfig,
   unused = sorted(set(state) - used)
   if unused:
     raise OfficialCheckpointError(f"{where}: parameters not part of the U-Net: {unused[:8]}")
-  leaves = {_path_name(path): leaf
-            for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]}
-  problems = [f"{name}: no such parameter in the U-Net"
-              for name in sorted(set(arrays) - set(leaves))]
-  problems += [f"{name}: no official parameter maps to it"
-               for name in sorted(set(leaves) - set(arrays))]
+  leaves = {
+      _path_name(path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]
+  }
+  problems = [
+      f"{name}: no such parameter in the U-Net" for name in sorted(set(arrays) - set(leaves))
+  ]
+  problems += [
+      f"{name}: no official parameter maps to it" for name in sorted(set(leaves) - set(arrays))
+  ]
   for name, (official, to_torch, value) in arrays.items():
     if name in leaves and value.shape != leaves[name].shape:
-      problems.append(f"parameter {official} has shape {state[official].shape}; the "
-                      f"architecture read from the file expects {to_torch(leaves[name].shape)}")
+      problems.append(
+          f"parameter {official} has shape {state[official].shape}; the "
+          f"architecture read from the file expects {to_torch(leaves[name].shape)}"
+      )
   if problems:
-    raise OfficialCheckpointError(f"{where}: does not match the official U-Net layout: "
-                                  + "; ".join(problems[:4]))
+    raise OfficialCheckpointError(
+        f"{where}: does not match the official U-Net layout: " + "; ".join(problems[:4])
+    )
   return jax.tree_util.tree_map_with_path(
-      lambda path, leaf: jnp.asarray(arrays[_path_name(path)][2], leaf.dtype), abstract)
+      lambda path, leaf: jnp.asarray(arrays[_path_name(path)][2], leaf.dtype), abstract
+  )
 
 
 def load_official(path, *, key: str | None = None, num_heads: int = OFFICIAL_NUM_HEADS):

@@ -58,14 +58,18 @@ class PerformanceOptions:
 
   def resolved(self, platform: str) -> dict[str, bool]:
     """{option: whether the fast path runs} for a backend `platform` ("cpu", "gpu", ...)."""
-    return {name: value == "on" or (value == "auto" and platform == FAST_PLATFORM)
-            for name, value in dataclasses.asdict(self).items()}
+    return {
+        name: value == "on" or (value == "auto" and platform == FAST_PLATFORM)
+        for name, value in dataclasses.asdict(self).items()
+    }
 
   def describe(self, platform: str) -> str:
     """One line, e.g. "winograd=auto (on), group_norm_backward=off (off)" on `platform`."""
     fast = self.resolved(platform)
-    return ", ".join(f"{name}={value} ({'on' if fast[name] else 'off'})"
-                     for name, value in dataclasses.asdict(self).items())
+    return ", ".join(
+        f"{name}={value} ({'on' if fast[name] else 'off'})"
+        for name, value in dataclasses.asdict(self).items()
+    )
 
 
 def from_environment(environ: Mapping[str, str]) -> PerformanceOptions:

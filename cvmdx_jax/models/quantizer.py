@@ -56,9 +56,11 @@ def init_codebook(key: jax.Array, config: QuantizerConfig) -> jax.Array:
 
 def nearest(codebook: jax.Array, z_hat: jax.Array) -> jax.Array:
   """(Q, D) codebook, (B, D) latents -> (B,) int32 index of the nearest entry (L2)."""
-  d2 = (jnp.sum(z_hat**2, -1, keepdims=True)
-        - 2.0 * jnp.matmul(z_hat, codebook.T, precision=constants.EXACT_MATMUL)
-        + jnp.sum(codebook**2, -1))
+  d2 = (
+      jnp.sum(z_hat**2, -1, keepdims=True)
+      - 2.0 * jnp.matmul(z_hat, codebook.T, precision=constants.EXACT_MATMUL)
+      + jnp.sum(codebook**2, -1)
+  )
   return jnp.argmin(d2, axis=-1).astype(jnp.int32)
 
 
@@ -88,9 +90,15 @@ def batch_share(indices: jax.Array, weight: jax.Array, num_entries: int) -> jax.
   return counts / jnp.maximum(jnp.sum(weight), 1e-12)
 
 
-def update_codebook(codebook: jax.Array, usage: jax.Array, z_hat: jax.Array,
-                    indices: jax.Array, weight: jax.Array, key: jax.Array,
-                    config: QuantizerConfig) -> tuple[jax.Array, jax.Array]:
+def update_codebook(
+    codebook: jax.Array,
+    usage: jax.Array,
+    z_hat: jax.Array,
+    indices: jax.Array,
+    weight: jax.Array,
+    key: jax.Array,
+    config: QuantizerConfig,
+) -> tuple[jax.Array, jax.Array]:
   """Running usage update and, for CVQ, the anchor refresh of low-usage entries.
 
   Args:
@@ -109,16 +117,19 @@ def update_codebook(codebook: jax.Array, usage: jax.Array, z_hat: jax.Array,
   usage = gamma * usage + (1.0 - gamma) * batch_share(indices, weight, config.codebook_size)
   if config.kind == "vq":
     return codebook, usage
-  rows = jax.random.choice(key, weight.shape[0], (config.codebook_size,),
-                           p=weight / jnp.maximum(jnp.sum(weight), 1e-12))
+  rows = jax.random.choice(
+      key, weight.shape[0], (config.codebook_size,), p=weight / jnp.maximum(jnp.sum(weight), 1e-12)
+  )
   anchors = jax.lax.stop_gradient(z_hat[rows])
-  alpha = jnp.exp(-usage * config.codebook_size * config.revive_strength / (1.0 - gamma)
-                  - _EPS)[:, None]
+  alpha = jnp.exp(-usage * config.codebook_size * config.revive_strength / (1.0 - gamma) - _EPS)[
+      :, None
+  ]
   return (1.0 - alpha) * codebook + alpha * anchors, usage
 
 
-def codebook_stats(indices: jax.Array, num_entries: int,
-                   weight: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+def codebook_stats(
+    indices: jax.Array, num_entries: int, weight: jax.Array | None = None
+) -> tuple[jax.Array, jax.Array]:
   """Entries in use and perplexity of an assignment.
 
   Args:
@@ -133,6 +144,5 @@ def codebook_stats(indices: jax.Array, num_entries: int,
     weight = jnp.ones(indices.shape, jnp.float32)
   share = batch_share(indices, weight, num_entries)
   in_use = jnp.sum(share > 0)
-  entropy = -jnp.sum(jnp.where(share > 0, share * jnp.log(jnp.where(share > 0, share, 1.0)),
-                               0.0))
+  entropy = -jnp.sum(jnp.where(share > 0, share * jnp.log(jnp.where(share > 0, share, 1.0)), 0.0))
   return in_use, jnp.exp(entropy)

@@ -8,14 +8,12 @@ features. Both treat the scenario as a 1-D sequence over time whose channels are
 levels) and nearest-neighbour upsampling + convolutions up.
 """
 
-
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
 from cvmdx_jax import constants
 from cvmdx_jax.config.models import EncoderConfig
-
 
 _IN_CHANNELS = constants.NUM_VEHICLES * (constants.NUM_FEATURES + 1)
 _OUT_CHANNELS = constants.NUM_VEHICLES * constants.NUM_FEATURES
@@ -26,11 +24,15 @@ class ScenarioEncoder(nnx.Module):
 
   def __init__(self, config: EncoderConfig, *, rngs: nnx.Rngs):
     widths = (_IN_CHANNELS, *config.channels)
-    self.convs = nnx.List([
-        nnx.Conv(c_in, c_out, config.kernel_size, strides=2, rngs=rngs)
-        for c_in, c_out in zip(widths[:-1], widths[1:])])
-    self.out = nnx.Linear(config.bottleneck_steps() * config.channels[-1],
-                          config.latent_dim, rngs=rngs)
+    self.convs = nnx.List(
+        [
+            nnx.Conv(c_in, c_out, config.kernel_size, strides=2, rngs=rngs)
+            for c_in, c_out in zip(widths[:-1], widths[1:])
+        ]
+    )
+    self.out = nnx.Linear(
+        config.bottleneck_steps() * config.channels[-1], config.latent_dim, rngs=rngs
+    )
 
   def __call__(self, x: jax.Array) -> jax.Array:
     b = x.shape[0]
@@ -47,9 +49,12 @@ class ScenarioDecoder(nnx.Module):
     self.steps = config.bottleneck_steps()
     widths = tuple(reversed(config.channels))
     self.inp = nnx.Linear(config.latent_dim, self.steps * widths[0], rngs=rngs)
-    self.convs = nnx.List([
-        nnx.Conv(c_in, c_out, config.kernel_size, rngs=rngs)
-        for c_in, c_out in zip(widths, (*widths[1:], widths[-1]))])
+    self.convs = nnx.List(
+        [
+            nnx.Conv(c_in, c_out, config.kernel_size, rngs=rngs)
+            for c_in, c_out in zip(widths, (*widths[1:], widths[-1]))
+        ]
+    )
     self.out = nnx.Conv(widths[-1], _OUT_CHANNELS, config.kernel_size, rngs=rngs)
 
   def __call__(self, z: jax.Array) -> jax.Array:
@@ -57,6 +62,6 @@ class ScenarioDecoder(nnx.Module):
     h = nnx.gelu(self.inp(z)).reshape(b, self.steps, -1)
     for conv in self.convs:
       h = nnx.gelu(conv(jnp.repeat(h, 2, axis=1)))
-    h = self.out(h[:, :constants.T_OBS])
+    h = self.out(h[:, : constants.T_OBS])
     h = h.reshape(b, constants.T_OBS, constants.NUM_VEHICLES, constants.NUM_FEATURES)
     return jnp.transpose(h, (0, 2, 1, 3))

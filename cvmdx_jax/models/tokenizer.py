@@ -57,8 +57,7 @@ class Tokenizer(nnx.Module):
   def __call__(self, xi: jax.Array, mask: jax.Array) -> Output:
     z_hat = self.encode(xi, mask)
     quantized = quantizer_lib.quantize(self.codebook[...], z_hat)
-    return Output(z_hat, quantized, self.decoder(quantized.z_q),
-                  self.classifier(quantized.z_q))
+    return Output(z_hat, quantized, self.decoder(quantized.z_q), self.classifier(quantized.z_q))
 
 
 def init_tokenizer(config: TokenizerConfig, key: jax.Array):
@@ -121,7 +120,10 @@ def loss_fn(graphdef, params, batch: dict, config: TokenizerConfig):
       "classification": weighted_mean(ce, weight),
       "accuracy": weighted_mean(correct, weight),
   }
-  loss = (metrics["reconstruction"] + metrics["codebook"]
-          + config.quantizer.beta * metrics["commitment"]
-          + config.cls_weight * metrics["classification"])
+  loss = (
+      metrics["reconstruction"]
+      + metrics["codebook"]
+      + config.quantizer.beta * metrics["commitment"]
+      + config.cls_weight * metrics["classification"]
+  )
   return loss, (metrics, out)

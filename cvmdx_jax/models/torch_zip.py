@@ -42,9 +42,17 @@ from pathlib import Path
 import numpy as np
 
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.models.torch_tensors import (SCALARS, STORAGES, Refused, StorageRef,
-                                            StorageType, TensorArgs, TensorBuilder, describe,
-                                            is_int)
+from cvmdx_jax.models.torch_tensors import (
+    SCALARS,
+    STORAGES,
+    Refused,
+    StorageRef,
+    StorageType,
+    TensorArgs,
+    TensorBuilder,
+    describe,
+    is_int,
+)
 
 MAX_PICKLE_BYTES = 1 << 19  # ~4,500 tensors; the official U-Net's (227 tensors) is 26 kB
 
@@ -60,6 +68,8 @@ _OPCODES = (
     "TUPLE2 TUPLE3 EMPTY_LIST LIST APPEND APPENDS EMPTY_DICT SETITEM SETITEMS GET BINGET "
     "LONG_BINGET PUT BINPUT LONG_BINPUT MEMOIZE GLOBAL STACK_GLOBAL REDUCE BUILD BINPERSID"
 ).split()
+
+
 def _entry(archive: zipfile.ZipFile, name: str, limit: int) -> zipfile.ZipInfo:
   """The header of entry `name`, checked: stored uncompressed, at most `limit` bytes."""
   try:
@@ -67,14 +77,16 @@ def _entry(archive: zipfile.ZipFile, name: str, limit: int) -> zipfile.ZipInfo:
   except KeyError:
     raise Refused(f"entry {name} missing from the archive") from None
   if info.compress_type != zipfile.ZIP_STORED:
-    raise Refused(f"entry {name} is compressed (method {info.compress_type}); torch.save "
-                   "stores entries uncompressed")
+    raise Refused(
+        f"entry {name} is compressed (method {info.compress_type}); torch.save "
+        "stores entries uncompressed"
+    )
   if info.file_size != info.compress_size:
-    raise Refused(f"entry {name} declares {info.file_size} bytes but stores "
-                   f"{info.compress_size}")
+    raise Refused(
+        f"entry {name} declares {info.file_size} bytes but stores " f"{info.compress_size}"
+    )
   if info.file_size > limit:
-    raise Refused(f"entry {name} declares {info.file_size} bytes, more than the {limit} "
-                   "allowed")
+    raise Refused(f"entry {name} declares {info.file_size} bytes, more than the {limit} " "allowed")
   return info
 
 
@@ -82,8 +94,10 @@ class _Dispatch(dict):
   """The opcode table: a missing opcode is refused (nothing is inserted)."""
 
   def __missing__(self, opcode: int):
-    raise Refused(f"the pickle uses opcode {bytes([opcode])!r}, outside those of plain "
-                   "containers and tensors (object construction, extensions, sets, buffers)")
+    raise Refused(
+        f"the pickle uses opcode {bytes([opcode])!r}, outside those of plain "
+        "containers and tensors (object construction, extensions, sets, buffers)"
+    )
 
 
 class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restricted
@@ -101,7 +115,8 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
         ("torch._utils", "_rebuild_tensor_v2"): self._rebuilds[0],
         ("torch._utils", "_rebuild_parameter"): self._rebuilds[1],
         ("torch._utils", "_rebuild_parameter_with_state"): self._rebuilds[1],
-        **{("torch", name): t for name, t in self._types.items()}}
+        **{("torch", name): t for name, t in self._types.items()},
+    }
     self._refs = {}
     pkl = _entry(archive, f"{prefix}data.pkl", MAX_PICKLE_BYTES)
     super().__init__(io.BytesIO(self.read_entry(pkl)))
@@ -110,8 +125,10 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
     """The bytes of entry `info`, counted against the archive's length."""
     self._unread -= info.file_size
     if self._unread < 0:
-      raise Refused(f"entry {info.filename}: the entries read add up to more than the "
-                     f"archive's {self._length} bytes")
+      raise Refused(
+          f"entry {info.filename}: the entries read add up to more than the "
+          f"archive's {self._length} bytes"
+      )
     return self._archive.read(info)
 
   # ------------------------------------------------------------- the pickle VM
@@ -120,29 +137,43 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
     try:
       return self._globals[(module, name)]
     except KeyError:
-      raise Refused(f"the pickle names {module}.{name}, which is not a tensor, parameter or "
-                     "plain container; only state dicts of tensors (possibly inside dicts) "
-                     "are read") from None
+      raise Refused(
+          f"the pickle names {module}.{name}, which is not a tensor, parameter or "
+          "plain container; only state dicts of tensors (possibly inside dicts) "
+          "are read"
+      ) from None
 
   def persistent_load(self, pid):
-    if not (type(pid) is tuple and len(pid) == 5 and pid[0] == "storage"
-            and any(pid[1] is t for t in self._types.values()) and type(pid[2]) is str
-            and is_int(pid[4]) and pid[4] >= 0):
-      raise Refused(f"unsupported persistent id (a {describe(pid)}); expected ('storage', "
-                     "torch.<Type>Storage, key, location, numel)")
+    if not (
+        type(pid) is tuple
+        and len(pid) == 5
+        and pid[0] == "storage"
+        and any(pid[1] is t for t in self._types.values())
+        and type(pid[2]) is str
+        and is_int(pid[4])
+        and pid[4] >= 0
+    ):
+      raise Refused(
+          f"unsupported persistent id (a {describe(pid)}); expected ('storage', "
+          "torch.<Type>Storage, key, location, numel)"
+      )
     _, storage_type, key, _, numel = pid
     ref = self._refs.get(key)
     if ref is None:
       info = _entry(self._archive, f"{self._prefix}data/{key}", self._length)
       itemsize = np.dtype(STORAGES[storage_type.name][0]).itemsize
       if numel * itemsize > info.file_size:
-        raise Refused(f"storage {info.filename} declares {numel} elements of "
-                       f"{storage_type.name} ({numel * itemsize} bytes), the entry holds "
-                       f"{info.file_size}")
+        raise Refused(
+            f"storage {info.filename} declares {numel} elements of "
+            f"{storage_type.name} ({numel * itemsize} bytes), the entry holds "
+            f"{info.file_size}"
+        )
       ref = self._refs[key] = StorageRef(info, storage_type.name, numel)
     if (ref.kind, ref.numel) != (storage_type.name, numel):
-      raise Refused(f"storage {ref.info.filename} is named as {ref.kind} of {ref.numel} "
-                     f"elements and as {storage_type.name} of {numel}")
+      raise Refused(
+          f"storage {ref.info.filename} is named as {ref.kind} of {ref.numel} "
+          f"elements and as {storage_type.name} of {numel}"
+      )
     return ref
 
   def _rebuild_tensor(self, storage, offset, size, stride, *unused):
@@ -161,8 +192,9 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
     args = self.stack.pop()
     func = self.stack[-1]
     if not any(func is f for f in self._rebuilds) or type(args) is not tuple:
-      raise Refused(f"REDUCE calls {describe(func)}; only tensor and parameter rebuilds are "
-                     "called")
+      raise Refused(
+          f"REDUCE calls {describe(func)}; only tensor and parameter rebuilds are " "called"
+      )
     if func is collections.OrderedDict and args:
       raise Refused("REDUCE calls OrderedDict with arguments")
     self.stack[-1] = func(*args)
@@ -188,17 +220,25 @@ class _Reader(pickle._Unpickler):  # the Python VM, so that opcodes can be restr
     state = self.stack.pop()
     target = self.stack[-1]
     if type(target) is not collections.OrderedDict or type(state) is not dict:
-      raise Refused(f"BUILD sets the state of {describe(target)}; only an OrderedDict's "
-                     "attributes are read (and dropped)")
+      raise Refused(
+          f"BUILD sets the state of {describe(target)}; only an OrderedDict's "
+          "attributes are read (and dropped)"
+      )
 
-  dispatch = _Dispatch({op: pickle._Unpickler.dispatch[op]
-                        for op in (getattr(pickle, name)[0] for name in _OPCODES)})
-  dispatch.update({
-      pickle.REDUCE[0]: _load_reduce, pickle.BUILD[0]: _load_build,
-      pickle.SETITEM[0]: lambda self: self._set_items([self.stack.pop(-2), self.stack.pop()]),
-      pickle.SETITEMS[0]: lambda self: self._set_items(self.pop_mark()),
-      pickle.APPEND[0]: lambda self: self._append_items([self.stack.pop()]),
-      pickle.APPENDS[0]: lambda self: self._append_items(self.pop_mark())})
+  dispatch = _Dispatch(
+      {op: pickle._Unpickler.dispatch[op] for op in (getattr(pickle, name)[0] for name in _OPCODES)}
+  )
+  dispatch.update(
+      {
+          pickle.REDUCE[0]: _load_reduce,
+          pickle.BUILD[0]: _load_build,
+          pickle.SETITEM[0]: lambda self: self._set_items([self.stack.pop(-2), self.stack.pop()]),
+          pickle.SETITEMS[0]: lambda self: self._set_items(self.pop_mark()),
+          pickle.APPEND[0]: lambda self: self._append_items([self.stack.pop()]),
+          pickle.APPENDS[0]: lambda self: self._append_items(self.pop_mark()),
+      }
+  )
+
 
 def read_pt(path: str | Path):
   """The object a `torch.save` zip file holds, tensors as numpy arrays.
@@ -211,15 +251,17 @@ def read_pt(path: str | Path):
   try:
     archive = zipfile.ZipFile(path)
   except Exception as e:  # zipfile raises many kinds on a damaged directory
-    raise TorchFileError(f"{path}: not a PyTorch zip checkpoint ({type(e).__name__}: "
-                         f"{str(e)[:200]}); files of torch.save(..., "
-                         "_use_new_zipfile_serialization=False) are not read") from None
+    raise TorchFileError(
+        f"{path}: not a PyTorch zip checkpoint ({type(e).__name__}: "
+        f"{str(e)[:200]}); files of torch.save(..., "
+        "_use_new_zipfile_serialization=False) are not read"
+    ) from None
   with archive:
     try:
       pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") and n.count("/") == 1]
       if len(pickles) != 1:
         raise Refused(f"expected one <name>/data.pkl in the archive, found {pickles[:4]}")
-      prefix = pickles[0][:-len("data.pkl")]
+      prefix = pickles[0][: -len("data.pkl")]
       byteorder = "little"
       if f"{prefix}byteorder" in archive.namelist():
         byteorder = archive.read(_entry(archive, f"{prefix}byteorder", 16)).decode().strip()
@@ -232,5 +274,7 @@ def read_pt(path: str | Path):
     except Refused as e:
       raise TorchFileError(f"{path}: {e}") from None
     except Exception as e:  # a damaged archive or pickle
-      raise TorchFileError(f"{path}: unreadable archive or pickle ({type(e).__name__}: "
-                           f"{' '.join(str(e).split())[:200]})") from None
+      raise TorchFileError(
+          f"{path}: unreadable archive or pickle ({type(e).__name__}: "
+          f"{' '.join(str(e).split())[:200]})"
+      ) from None

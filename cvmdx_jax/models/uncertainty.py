@@ -39,9 +39,13 @@ class Gaussians:
   count: jax.Array
 
 
-def fit_gaussians(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
-                  codebook: jax.typing.ArrayLike, shrinkage: float = 16.0,
-                  ridge: float = 1e-3) -> Gaussians:
+def fit_gaussians(
+    z_hat: jax.typing.ArrayLike,
+    indices: jax.typing.ArrayLike,
+    codebook: jax.typing.ArrayLike,
+    shrinkage: float = 16.0,
+    ridge: float = 1e-3,
+) -> Gaussians:
   """Fits the per-entry Gaussians from the training latents.
 
   Args:
@@ -55,16 +59,18 @@ def fit_gaussians(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
     `Gaussians` with invertible covariances.
   """
   if shrinkage <= 0 or ridge < 0:
-    raise UserError(f"uncertainty: shrinkage ({shrinkage}) must be > 0 and ridge "
-                     f"({ridge}) >= 0")
+    raise UserError(
+        f"uncertainty: shrinkage ({shrinkage}) must be > 0 and ridge " f"({ridge}) >= 0"
+    )
   z_hat = jnp.asarray(z_hat, jnp.float32)
   codebook = jnp.asarray(codebook, jnp.float32)
   num_entries, dim = codebook.shape
   diff = z_hat - codebook[indices]
   outer = diff[:, :, None] * diff[:, None, :]
   scatter = jax.ops.segment_sum(outer, indices, num_segments=num_entries)
-  count = jax.ops.segment_sum(jnp.ones_like(indices, jnp.float32), indices,
-                              num_segments=num_entries)
+  count = jax.ops.segment_sum(
+      jnp.ones_like(indices, jnp.float32), indices, num_segments=num_entries
+  )
   eye = jnp.eye(dim, dtype=jnp.float32)
   pooled = jnp.sum(scatter, 0) / jnp.maximum(jnp.sum(count), 1.0)
   pooled = pooled + (ridge * jnp.mean(jnp.diag(pooled)) + 1e-6) * eye
@@ -72,16 +78,17 @@ def fit_gaussians(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
   w = (count / (count + shrinkage))[:, None, None]
   cov = w * own + (1.0 - w) * pooled
   chol = jnp.linalg.cholesky(cov)
-  chol_inv = jax.scipy.linalg.solve_triangular(
-      chol, jnp.broadcast_to(eye, cov.shape), lower=True)
+  chol_inv = jax.scipy.linalg.solve_triangular(chol, jnp.broadcast_to(eye, cov.shape), lower=True)
   precision = jnp.matmul(jnp.swapaxes(chol_inv, -1, -2), chol_inv, precision=constants.EXACT_MATMUL)
   return Gaussians(codebook, cov, precision, count)
 
 
-def mahalanobis(z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike,
-                gaussians: Gaussians) -> jax.Array:
+def mahalanobis(
+    z_hat: jax.typing.ArrayLike, indices: jax.typing.ArrayLike, gaussians: Gaussians
+) -> jax.Array:
   """delta: (B, D) latents, (B,) their tokens -> (B,) Mahalanobis distance to their entry."""
   diff = jnp.asarray(z_hat, jnp.float32) - gaussians.mean[indices]
-  quad = jnp.einsum("bi,bij,bj->b", diff, gaussians.precision[indices], diff,
-                    precision=constants.EXACT_MATMUL)
+  quad = jnp.einsum(
+      "bi,bij,bj->b", diff, gaussians.precision[indices], diff, precision=constants.EXACT_MATMUL
+  )
   return jnp.sqrt(jnp.maximum(quad, 0.0))

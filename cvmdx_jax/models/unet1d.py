@@ -25,8 +25,14 @@ from flax import nnx
 
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import functional
-from cvmdx_jax.models.layers import (Downsample, ResAttnBlock, ResBlock, Upsample, group_norm,
-                                     timestep_embedding)
+from cvmdx_jax.models.layers import (
+    Downsample,
+    ResAttnBlock,
+    ResBlock,
+    Upsample,
+    group_norm,
+    timestep_embedding,
+)
 
 
 class UNet1D(nnx.Module):
@@ -39,8 +45,7 @@ class UNet1D(nnx.Module):
 
     def block(level, in_ch, out_ch):
       heads = config.num_heads if level in config.attention_levels else 0
-      return ResAttnBlock(in_ch, out_ch, emb_dim, config.groups, config.dropout, heads,
-                          rngs=rngs)
+      return ResAttnBlock(in_ch, out_ch, emb_dim, config.groups, config.dropout, heads, rngs=rngs)
 
     self.time_mlp1 = nnx.Linear(ch, emb_dim, rngs=rngs)
     self.time_mlp2 = nnx.Linear(emb_dim, emb_dim, rngs=rngs)
@@ -51,8 +56,9 @@ class UNet1D(nnx.Module):
       widths = config.cond_widths
       self.cond_mlp1 = nnx.Linear(config.cond_dim, widths[0], rngs=rngs)
       if len(widths) > 1:
-        self.cond_mlp_hidden = nnx.List([nnx.Linear(a, b, rngs=rngs)
-                                         for a, b in zip(widths, widths[1:])])
+        self.cond_mlp_hidden = nnx.List(
+            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(widths, widths[1:])]
+        )
       self.cond_mlp2 = nnx.Linear(widths[-1], emb_dim, rngs=rngs)
     self.conv_in = nnx.Conv(config.channels, ch, kernel_size=(3,), rngs=rngs)
 
@@ -67,10 +73,14 @@ class UNet1D(nnx.Module):
         skip_channels.append(cur)
     self.down_blocks, self.down_samples = nnx.List(down_blocks), nnx.List(down_samples)
     # middle: residual + attention, then residual
-    self.mid = nnx.List([
-        ResAttnBlock(cur, cur, emb_dim, config.groups, config.dropout, config.num_heads,
-                     rngs=rngs),
-        ResAttnBlock(cur, cur, emb_dim, config.groups, config.dropout, 0, rngs=rngs)])
+    self.mid = nnx.List(
+        [
+            ResAttnBlock(
+                cur, cur, emb_dim, config.groups, config.dropout, config.num_heads, rngs=rngs
+            ),
+            ResAttnBlock(cur, cur, emb_dim, config.groups, config.dropout, 0, rngs=rngs),
+        ]
+    )
 
     up_blocks, up_samples = [], []
     for level, mult in reversed(list(enumerate(config.channel_mult))):
@@ -81,12 +91,12 @@ class UNet1D(nnx.Module):
         up_samples.append(Upsample(cur, rngs=rngs))
     self.up_blocks, self.up_samples = nnx.List(up_blocks), nnx.List(up_samples)
     self.norm_out = group_norm(cur, config.groups)
-    self.conv_out = nnx.Conv(cur, config.channels, kernel_size=(3,),
-                             kernel_init=nnx.initializers.zeros, rngs=rngs)
+    self.conv_out = nnx.Conv(
+        cur, config.channels, kernel_size=(3,), kernel_init=nnx.initializers.zeros, rngs=rngs
+    )
     if config.num_intents:  # last, so that every other parameter draws as without it
       widths = (config.intent_features,) + config.cond_widths + (config.num_intents,)
-      self.intent_mlp = nnx.List([nnx.Linear(a, b, rngs=rngs)
-                                  for a, b in zip(widths, widths[1:])])
+      self.intent_mlp = nnx.List([nnx.Linear(a, b, rngs=rngs) for a, b in zip(widths, widths[1:])])
 
   def embedding(self, t, q, cond=None):
     """The FiLM embedding (B, emb_mult * base_channels): the timestep's MLP + the token's
@@ -111,10 +121,15 @@ class UNet1D(nnx.Module):
   def __call__(self, x_t, t, q, dropout_key=None, cond=None):
     cfg = self.config
     if (cond is None) != (cfg.cond_dim == 0):
-      raise ValueError(f"UNet1D: cond_dim={cfg.cond_dim} but cond is "
-                       f"{None if cond is None else jnp.shape(cond)}")
-    keys = iter(jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
-                if dropout_key is not None else [])
+      raise ValueError(
+          f"UNet1D: cond_dim={cfg.cond_dim} but cond is "
+          f"{None if cond is None else jnp.shape(cond)}"
+      )
+    keys = iter(
+        jax.random.split(dropout_key, len(self.down_blocks) + len(self.up_blocks) + 2)
+        if dropout_key is not None
+        else []
+    )
     key = lambda: next(keys, None)
     emb = self.embedding(t, q, cond)
     length = x_t.shape[1]
@@ -137,7 +152,7 @@ class UNet1D(nnx.Module):
       if level > 0:
         h = next(samples)(h)
     out = self.conv_out(self.norm_out.silu(h))
-    return out[:, left:left + length]
+    return out[:, left : left + length]
 
 
 def init_unet(config: UNetConfig, key: jax.Array):

@@ -27,10 +27,22 @@ from cvmdx_jax.models import performance
 TILE = 4  # outputs per tile
 MIN_CHANNELS = 128  # `conv3` uses F(4, 3) where both channel counts reach this
 # B^T (6 x 6), G (6 x 3), A^T (4 x 6) of F(4, 3) for correlation y_i = sum_k d_{i+k} g_k
-_BT = ((4, 0, -5, 0, 1, 0), (0, -4, -4, 1, 1, 0), (0, 4, -4, -1, 1, 0),
-       (0, -2, -1, 2, 1, 0), (0, 2, -1, -2, 1, 0), (0, 4, 0, -5, 0, 1))
-_G = ((1 / 4, 0, 0), (-1 / 6, -1 / 6, -1 / 6), (-1 / 6, 1 / 6, -1 / 6),
-      (1 / 24, 1 / 12, 1 / 6), (1 / 24, -1 / 12, 1 / 6), (0, 0, 1))
+_BT = (
+    (4, 0, -5, 0, 1, 0),
+    (0, -4, -4, 1, 1, 0),
+    (0, 4, -4, -1, 1, 0),
+    (0, -2, -1, 2, 1, 0),
+    (0, 2, -1, -2, 1, 0),
+    (0, 4, 0, -5, 0, 1),
+)
+_G = (
+    (1 / 4, 0, 0),
+    (-1 / 6, -1 / 6, -1 / 6),
+    (-1 / 6, 1 / 6, -1 / 6),
+    (1 / 24, 1 / 12, 1 / 6),
+    (1 / 24, -1 / 12, 1 / 6),
+    (0, 0, 1),
+)
 _AT = ((1, 1, 1, 1, 1, 0), (0, 1, -1, 2, -2, 0), (0, 1, 1, 4, 4, 0), (0, 1, -1, 8, -8, 1))
 
 
@@ -58,8 +70,7 @@ def winograd_conv(x, kernel):
   # blocks of 4: tile t reads padded positions 4 t .. 4 t + 5 (block t and two of t + 1)
   right = tiles * TILE - length + TILE - 1
   blocks = jnp.pad(x, ((0, 0), (1, right), (0, 0))).reshape(b, tiles + 1, TILE, channels)
-  inputs = [blocks[:, :tiles, p] if p < TILE else blocks[:, 1:, p - TILE]
-            for p in range(TILE + 2)]
+  inputs = [blocks[:, :tiles, p] if p < TILE else blocks[:, 1:, p - TILE] for p in range(TILE + 2)]
   u = jnp.stack(_combine(_BT, inputs)).reshape(TILE + 2, b * tiles, channels)
   v = kernel if is_transformed(kernel) else transform_kernel(kernel)  # (6, C, O)
   m = jax.lax.dot_general(u, v, (((2,), (1,)), ((0,), (0,))))  # (6, B tiles, O)
@@ -89,8 +100,9 @@ def eligible(kernel) -> bool:
 
 def direct_conv(x, kernel):
   """XLA's convolution, the same function as `winograd_conv` for any length."""
-  return jax.lax.conv_general_dilated(x, kernel, (1,), ((1, 1),),
-                                      dimension_numbers=("NWC", "WIO", "NWC"))
+  return jax.lax.conv_general_dilated(
+      x, kernel, (1,), ((1, 1),), dimension_numbers=("NWC", "WIO", "NWC")
+  )
 
 
 def conv3(x, kernel):

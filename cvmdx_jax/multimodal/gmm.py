@@ -76,6 +76,7 @@ def farthest_point_seeds(points: jax.Array, num_seeds: int) -> jax.Array:
     (num_seeds,) int indices; the first k of them are the seeds for k
     components, whatever num_seeds is.
   """
+
   def sq_dist_to(point):
     return jnp.sum((points - point) ** 2, axis=-1)
 
@@ -92,8 +93,9 @@ def farthest_point_seeds(points: jax.Array, num_seeds: int) -> jax.Array:
   return jnp.concatenate([first[None], rest])
 
 
-def initial_responsibilities(points: jax.Array, num_components: jax.Array,
-                             max_components: int) -> jax.Array:
+def initial_responsibilities(
+    points: jax.Array, num_components: jax.Array, max_components: int
+) -> jax.Array:
   """Hard assignment of each point to its nearest active farthest-point seed.
 
   Args:
@@ -111,8 +113,9 @@ def initial_responsibilities(points: jax.Array, num_components: jax.Array,
   return jax.nn.one_hot(jnp.argmin(sq_dist, axis=-1), max_components, dtype=points.dtype)
 
 
-def m_step(points: jax.Array, responsibilities: jax.Array, active: jax.Array,
-           reg_covar: float) -> Mixture:
+def m_step(
+    points: jax.Array, responsibilities: jax.Array, active: jax.Array, reg_covar: float
+) -> Mixture:
   """Maximum-likelihood mixture for given responsibilities.
 
   Args:
@@ -128,15 +131,15 @@ def m_step(points: jax.Array, responsibilities: jax.Array, active: jax.Array,
   counts = jnp.sum(responsibilities, axis=0) + 10 * jnp.finfo(points.dtype).eps
   means = jnp.matmul(responsibilities.T, points, precision=constants.EXACT_MATMUL) / counts[:, None]
   diff = points[None] - means[:, None]  # (K, N, r)
-  scatter = jnp.einsum("nk,kni,knj->kij", responsibilities, diff, diff,
-                       precision=constants.EXACT_MATMUL)
+  scatter = jnp.einsum(
+      "nk,kni,knj->kij", responsibilities, diff, diff, precision=constants.EXACT_MATMUL
+  )
   covariances = scatter / counts[:, None, None] + reg_covar * jnp.eye(dim, dtype=points.dtype)
   weights = jnp.where(active, counts, 0.0)
   return Mixture(weights / jnp.sum(weights), means, covariances)
 
 
-def _cholesky_whiten(covariances: jax.Array,
-                     diff: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _cholesky_whiten(covariances: jax.Array, diff: jax.Array) -> tuple[jax.Array, jax.Array]:
   """Squared Mahalanobis norms and log-determinants through a Cholesky factor.
 
   Unrolled over the small static dimension r, so XLA fuses it into
@@ -162,7 +165,7 @@ def _cholesky_whiten(covariances: jax.Array,
     dot = sum(chol[i][k][:, None] * white[k] for k in range(i))
     white.append((diff[..., i] - dot) / chol[i][i][:, None])
   log_det = 2 * sum(jnp.log(chol[i][i]) for i in range(dim))
-  return sum(w ** 2 for w in white), log_det
+  return sum(w**2 for w in white), log_det
 
 
 def component_log_densities(points: jax.Array, mixture: Mixture) -> jax.Array:
@@ -190,8 +193,13 @@ def _posterior(points: jax.Array, mixture: Mixture) -> tuple[jax.Array, jax.Arra
   return jnp.exp(log_dens - log_like[:, None]), log_like
 
 
-def fit(points: jax.Array, num_components: jax.Array, max_components: int,
-        reg_covar: float, num_iters: int) -> Fit:
+def fit(
+    points: jax.Array,
+    num_components: jax.Array,
+    max_components: int,
+    reg_covar: float,
+    num_iters: int,
+) -> Fit:
   """Fits a C-component full-covariance mixture by deterministic EM.
 
   Args:
@@ -205,8 +213,9 @@ def fit(points: jax.Array, num_components: jax.Array, max_components: int,
     `Fit` with the mixture, its total log-likelihood and responsibilities.
   """
   active = jnp.arange(max_components) < num_components
-  init = m_step(points, initial_responsibilities(points, num_components, max_components),
-                active, reg_covar)
+  init = m_step(
+      points, initial_responsibilities(points, num_components, max_components), active, reg_covar
+  )
 
   def em_iteration(_, mixture):
     responsibilities, _ = _posterior(points, mixture)

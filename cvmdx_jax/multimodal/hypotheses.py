@@ -24,10 +24,7 @@ import jax.numpy as jnp
 from cvmdx_jax import constants
 from cvmdx_jax.config.sampling import HypothesisConfig
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.multimodal import gmm
-from cvmdx_jax.multimodal import kmeans
-from cvmdx_jax.multimodal import pca
-from cvmdx_jax.multimodal import scaling
+from cvmdx_jax.multimodal import gmm, kmeans, pca, scaling
 
 
 @jax.tree_util.register_dataclass
@@ -81,8 +78,12 @@ def _group(component, trajectories, num_slots: int):
   one_hot = jax.nn.one_hot(labels, num_slots, dtype=trajectories.dtype)  # (N, num_slots)
   sums = jnp.einsum("nk,ntd->ktd", one_hot, trajectories, precision=constants.EXACT_MATMUL)
   means = sums / jnp.maximum(counts, 1).astype(trajectories.dtype)[:, None, None]
-  return (jnp.sum(counts > 0).astype(jnp.int32), labels.astype(jnp.int32), means,
-          counts.astype(trajectories.dtype) / component.shape[0])
+  return (
+      jnp.sum(counts > 0).astype(jnp.int32),
+      labels.astype(jnp.int32),
+      means,
+      counts.astype(trajectories.dtype) / component.shape[0],
+  )
 
 
 def _select_one(points, trajectories, config: HypothesisConfig):
@@ -90,14 +91,21 @@ def _select_one(points, trajectories, config: HypothesisConfig):
   num_points, dim = points.shape
   c_max = config.c_max
   candidates = jnp.arange(1, c_max + 1)
-  fits = jax.vmap(
-      lambda c: gmm.fit(points, c, c_max, config.reg_covar, config.em_iters))(candidates)
+  fits = jax.vmap(lambda c: gmm.fit(points, c, c_max, config.reg_covar, config.em_iters))(
+      candidates
+  )
   bic = gmm.bic(fits.log_likelihood, candidates, dim, num_points)
   best = jnp.argmin(bic)
   component = jnp.argmax(fits.responsibilities[best], axis=-1)  # (N,)
   num_modes, labels, means, probs = _group(component, trajectories, c_max)
-  return Hypotheses(num_modes=num_modes, num_components=(best + 1).astype(jnp.int32),
-                    labels=labels, means=means, probs=probs, bic=bic)
+  return Hypotheses(
+      num_modes=num_modes,
+      num_components=(best + 1).astype(jnp.int32),
+      labels=labels,
+      means=means,
+      probs=probs,
+      bic=bic,
+  )
 
 
 def _kmeans_one(trajectories, config: HypothesisConfig):
@@ -105,13 +113,19 @@ def _kmeans_one(trajectories, config: HypothesisConfig):
   points = kmeans.features(trajectories, config.endpoint_weight)
   _, component = kmeans.fit(points, config.c_max, config.kmeans_iters)
   num_modes, labels, means, probs = _group(component, trajectories, config.c_max)
-  return Hypotheses(num_modes=num_modes, num_components=jnp.int32(config.c_max),
-                    labels=labels, means=means, probs=probs,
-                    bic=jnp.full((config.c_max,), jnp.nan, trajectories.dtype))
+  return Hypotheses(
+      num_modes=num_modes,
+      num_components=jnp.int32(config.c_max),
+      labels=labels,
+      means=means,
+      probs=probs,
+      bic=jnp.full((config.c_max,), jnp.nan, trajectories.dtype),
+  )
 
 
-def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
-                   config: HypothesisConfig | None = None) -> Hypotheses:
+def fit_hypotheses(
+    trajectories: jax.Array, c_max: int | None = None, config: HypothesisConfig | None = None
+) -> Hypotheses:
   """Motion hypotheses of sampled trajectories, batched over scenarios.
 
   Plain jittable code: jit it at the caller's boundary, e.g.
@@ -136,14 +150,14 @@ def fit_hypotheses(trajectories: jax.Array, c_max: int | None = None,
     raise UserError(f"fit_hypotheses: c_max={c_max} contradicts config.c_max={config.c_max}")
   trajectories = jnp.asarray(trajectories)
   if trajectories.ndim != 4 or trajectories.shape[-1] != 2:
-    raise UserError(
-        f"fit_hypotheses: trajectories must be (B, N, T, 2), got {trajectories.shape}")
+    raise UserError(f"fit_hypotheses: trajectories must be (B, N, T, 2), got {trajectories.shape}")
   if not jnp.issubdtype(trajectories.dtype, jnp.floating):
     raise UserError(f"fit_hypotheses: trajectories must be floating, got {trajectories.dtype}")
   if config.method == "kmeans":
     return jax.vmap(lambda t: _kmeans_one(t, config))(trajectories)
   if config.c_max > trajectories.shape[1]:
     raise UserError(
-        f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples")
+        f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples"
+    )
   points = embed(trajectories, config)
   return jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories)

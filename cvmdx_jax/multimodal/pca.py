@@ -34,10 +34,12 @@ def project(points: jax.Array, dim: int) -> jax.Array:
   if not 1 <= dim <= min(num_points, num_features):
     raise UserError(
         f"pca_dim must be in [1, min(N, D)] = [1, {min(num_points, num_features)}] "
-        f"for points of shape {points.shape}, got {dim}")
+        f"for points of shape {points.shape}, got {dim}"
+    )
   centred = points - jnp.mean(points, axis=-2, keepdims=True)
-  gram = jnp.matmul(centred, jnp.swapaxes(centred, -1, -2),
-                    precision=constants.EXACT_MATMUL)  # (..., N, N)
+  gram = jnp.matmul(
+      centred, jnp.swapaxes(centred, -1, -2), precision=constants.EXACT_MATMUL
+  )  # (..., N, N)
   eigvals, eigvecs = jnp.linalg.eigh(gram)  # ascending
   top_vals = eigvals[..., ::-1][..., :dim]
   top_vecs = eigvecs[..., ::-1][..., :dim]

@@ -17,7 +17,6 @@ import jax.numpy as jnp
 from cvmdx_jax.config.sampling import SCALINGS
 from cvmdx_jax.errors import UserError
 
-
 # Ranges below this are treated as constant (scale 1), as scikit-learn's
 # MinMaxScaler does, so a coordinate that never varies maps to 0, not NaN.
 _MIN_RANGE_EPS = 10.0
@@ -53,8 +52,9 @@ def minmax_scale(trajectories: jax.Array) -> jax.Array:
   return (trajectories - low) / span
 
 
-def scale(trajectories: jax.Array, method: str, x_scale: float = 180.0,
-          y_scale: float = 7.0) -> jax.Array:
+def scale(
+    trajectories: jax.Array, method: str, x_scale: float = 180.0, y_scale: float = 7.0
+) -> jax.Array:
   """Applies the scaling named by `method` (one of `SCALINGS`).
 
   Args:

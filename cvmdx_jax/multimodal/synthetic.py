@@ -15,9 +15,15 @@ LANE_WIDTH = 3.5  # m
 MODE_KINDS = ((0, 0), (1, 0), (-1, 0), (0, 1), (1, 1), (-1, 1))
 
 
-def mode_sets(seed: int, num_sets: int, num_samples: int = 9, num_modes=None,
-              brake: float = -4.0, num_steps: int = constants.T_PRED,
-              dt: float = constants.DT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mode_sets(
+    seed: int,
+    num_sets: int,
+    num_samples: int = 9,
+    num_modes=None,
+    brake: float = -4.0,
+    num_steps: int = constants.T_PRED,
+    dt: float = constants.DT,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Sets of sampled highway futures around a known number of modes.
 
   Each set has a speed v0 ~ U(22, 38) m/s and 1-3 distinct mode kinds
@@ -46,8 +52,10 @@ def mode_sets(seed: int, num_sets: int, num_samples: int = 9, num_modes=None,
     num_modes = rng.integers(1, 4, size=num_sets)
   num_modes = np.broadcast_to(np.asarray(num_modes, int), (num_sets,))
   if np.any(num_modes < 1) or np.any(num_modes > 3) or 2 * num_modes.max() > num_samples:
-    raise ValueError(f"mode_sets: num_modes must be in 1..3 with 2 samples each, got "
-                     f"{np.unique(num_modes)} for num_samples={num_samples}")
+    raise ValueError(
+        f"mode_sets: num_modes must be in 1..3 with 2 samples each, got "
+        f"{np.unique(num_modes)} for num_samples={num_samples}"
+    )
   t = dt * np.arange(1, num_steps + 1)
   trajectories = np.empty((num_sets, num_samples, num_steps, 2))
   mode_ids = np.empty((num_sets, num_samples), int)
@@ -59,10 +67,10 @@ def mode_sets(seed: int, num_sets: int, num_samples: int = 9, num_modes=None,
     start = rng.uniform(0.3, 1.5, k)[ids] + rng.normal(0, 0.15, num_samples)
     duration = rng.uniform(3.0, 4.5, k)[ids] + rng.normal(0, 0.15, num_samples)
     u = np.clip((t[None] - start[:, None]) / duration[:, None], 0.0, 1.0)
-    smooth = u ** 3 * (10 - 15 * u + 6 * u ** 2)
+    smooth = u**3 * (10 - 15 * u + 6 * u**2)
     speed = rng.uniform(22, 38) + rng.normal(0, 0.5, num_samples)
     accel = brake * brakes[ids] + rng.normal(0, 0.15, num_samples)
-    x = speed[:, None] * t + 0.5 * accel[:, None] * t ** 2
+    x = speed[:, None] * t + 0.5 * accel[:, None] * t**2
     y = LANE_WIDTH * lanes[ids][:, None] * smooth + rng.normal(0, 0.15, (num_samples, 1))
     noise = rng.normal(0, 0.03, (num_samples, num_steps, 2))
     trajectories[b] = np.stack([x, y], axis=-1) + noise

@@ -45,8 +45,9 @@ def read_json(path: Path, what: str) -> dict:
   try:
     value = checksums.read_json(path)
   except OSError as e:
-    raise FileNotFoundError(f"{path}: missing or unreadable; not a {what} run directory "
-                            f"({e})") from e
+    raise FileNotFoundError(
+        f"{path}: missing or unreadable; not a {what} run directory " f"({e})"
+    ) from e
   if not isinstance(value, dict):
     raise CorruptRunError(f"{path}: expected a JSON object, got {type(value).__name__}")
   return value
@@ -58,15 +59,19 @@ def saved_tokenizer_fingerprint(workdir: str | os.PathLike) -> dict | None:
   return read_json(path, "tokeniser").get("fingerprint") if path.is_file() else None
 
 
-def write_tokenizer_dir(workdir: str | os.PathLike, model_cfg: TokenizerConfig,
-                        fingerprint: dict) -> None:
+def write_tokenizer_dir(
+    workdir: str | os.PathLike, model_cfg: TokenizerConfig, fingerprint: dict
+) -> None:
   """Writes <workdir>/tokenizer.json (process 0 of a distributed run)."""
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   if sharding.is_primary():
-    checksums.write_json(workdir / TOKENIZER_JSON, {"model": dataclasses.asdict(model_cfg),
-                                                    "fingerprint": fingerprint},
-                         indent=1, sort_keys=True)
+    checksums.write_json(
+        workdir / TOKENIZER_JSON,
+        {"model": dataclasses.asdict(model_cfg), "fingerprint": fingerprint},
+        indent=1,
+        sort_keys=True,
+    )
 
 
 def write_run_config(workdir: str | os.PathLike, config) -> None:

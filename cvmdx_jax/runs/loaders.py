@@ -36,8 +36,7 @@ def abstract_params(init, model_cfg) -> dict:
 def restore_latest(workdir: Path, abstract: dict) -> tuple[dict, dict]:
   """(the leaves of `abstract` from the latest checkpoint, the saved fingerprint)."""
   rep = sharding.replicated(sharding.data_mesh())
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
-                          abstract)
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), abstract)
   tree, saved = checkpointing.load_latest(workdir / layout.CHECKPOINTS, abstract, partial=True)
   return tree, saved["fingerprint"]
 
@@ -51,13 +50,15 @@ def read_run_config(workdir: Path, cls, what: str):
   except CorruptRunError:
     raise
   except ValueError as e:
-    raise CheckpointMismatchError(f"{path}: {e}; a run of another version of cvmdx_jax: "
-                                  "retrain it") from e
+    raise CheckpointMismatchError(
+        f"{path}: {e}; a run of another version of cvmdx_jax: " "retrain it"
+    ) from e
   except (KeyError, TypeError, AttributeError) as e:  # a section missing or of another kind
     raise CheckpointMismatchError(
         f"{path}: not the config of a {what} run (its section {e} is missing or not a "
         f"section): another kind of run (a baseline run where a {what} run is expected?) "
-        "or another version") from e
+        "or another version"
+    ) from e
 
 
 def read_tokenizer(workdir: str | os.PathLike):
@@ -79,20 +80,37 @@ def read_tokenizer(workdir: str | os.PathLike):
     raise FileNotFoundError(f"{path}: missing; train the tokeniser with this workdir first")
   saved = layout.read_json(path, "tokeniser")
   model_cfg = to_dataclass(TokenizerConfig, saved["model"])
-  abstract = {"params": abstract_params(tokenizer_lib.init_tokenizer, model_cfg),
-              "step": jax.ShapeDtypeStruct((), jnp.int32)}
+  abstract = {
+      "params": abstract_params(tokenizer_lib.init_tokenizer, model_cfg),
+      "step": jax.ShapeDtypeStruct((), jnp.int32),
+  }
   state, fingerprint = restore_latest(workdir, abstract)
-  identity.check(fingerprint, saved["fingerprint"], f"checkpoint {workdir / layout.CHECKPOINTS}",
-                 CheckpointMismatchError)
+  identity.check(
+      fingerprint,
+      saved["fingerprint"],
+      f"checkpoint {workdir / layout.CHECKPOINTS}",
+      CheckpointMismatchError,
+  )
   gpath = tokens.gaussians_path(workdir)
   gaussians, gmeta = tokens.load_gaussians(gpath)
-  checkpoint = {"fingerprint": saved["fingerprint"], "step": int(state["step"]),
-                "params_id": content_id(state["params"])}
-  identity.check(fingerprints.tokenizer_checkpoint(gmeta), checkpoint,
-                 f"{gpath} (Gaussians fitted on another checkpoint; retrain the tokeniser)",
-                 tokens.TokensMismatchError)
-  return (state["params"], gaussians, model_cfg, ml_collections.FrozenConfigDict(saved["fingerprint"]),
-          ml_collections.FrozenConfigDict(checkpoint))
+  checkpoint = {
+      "fingerprint": saved["fingerprint"],
+      "step": int(state["step"]),
+      "params_id": content_id(state["params"]),
+  }
+  identity.check(
+      fingerprints.tokenizer_checkpoint(gmeta),
+      checkpoint,
+      f"{gpath} (Gaussians fitted on another checkpoint; retrain the tokeniser)",
+      tokens.TokensMismatchError,
+  )
+  return (
+      state["params"],
+      gaussians,
+      model_cfg,
+      ml_collections.FrozenConfigDict(saved["fingerprint"]),
+      ml_collections.FrozenConfigDict(checkpoint),
+  )
 
 
 def read_denoiser(workdir: str | os.PathLike):
@@ -107,8 +125,9 @@ def read_denoiser(workdir: str | os.PathLike):
   """
   workdir = Path(workdir)
   config = read_run_config(workdir, DiffusionRunConfig, "diffusion")
-  tree, fingerprint = restore_latest(workdir, {"ema_params": abstract_params(unet1d.init_unet,
-                                                                            config.model)})
+  tree, fingerprint = restore_latest(
+      workdir, {"ema_params": abstract_params(unet1d.init_unet, config.model)}
+  )
   return config, tree["ema_params"], ml_collections.FrozenConfigDict(fingerprint)
 
 
@@ -119,8 +138,16 @@ def load_val_chosen(workdir: str | os.PathLike, run_cls, init, what: str):
   chosen epoch; raises as `load_baseline` does, naming a `what` run directory."""
   workdir = Path(workdir)
   config = read_run_config(workdir, run_cls, what)
-  abstract = {"best": {"params": abstract_params(init, config.model),
-                       "epoch": jax.ShapeDtypeStruct((), jnp.int32)}}
+  abstract = {
+      "best": {
+          "params": abstract_params(init, config.model),
+          "epoch": jax.ShapeDtypeStruct((), jnp.int32),
+      }
+  }
   tree, fingerprint = restore_latest(workdir, abstract)
-  return (config, tree["best"]["params"], ml_collections.FrozenConfigDict(fingerprint),
-          int(tree["best"]["epoch"]))
+  return (
+      config,
+      tree["best"]["params"],
+      ml_collections.FrozenConfigDict(fingerprint),
+      int(tree["best"]["epoch"]),
+  )

@@ -85,6 +85,7 @@ def call_peak(fn, interval_s: float = 0.002):
     while not done.is_set():
       peak[0] = max(peak[0], current_rss() or 0)
       time.sleep(interval_s)
+
   watcher = threading.Thread(target=watch, daemon=True)
   watcher.start()
   try:

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.storage import checksums, identity
 from cvmdx_jax.models.uncertainty import Gaussians
+from cvmdx_jax.storage import checksums, identity
 
 GAUSSIANS_NAME = "gaussians"
 
@@ -82,15 +82,21 @@ def save_tokens(path: str | os.PathLike, tokens: Tokens, metadata: dict) -> None
   """Writes tokens + metadata (JSON-able dict) atomically to `path` (.npz)."""
   m = tokens.q.shape[0]
   if tokens.z_hat.shape[0] != m or tokens.delta.shape != (m,):
-    raise UserError(f"{path}: q {tokens.q.shape}, z_hat {tokens.z_hat.shape} and delta "
-                     f"{tokens.delta.shape} disagree on the number of scenarios")
-  arrays = {"q": np.asarray(tokens.q, np.int32), "z_hat": np.asarray(tokens.z_hat, np.float32),
-            "delta": np.asarray(tokens.delta, np.float32)}
+    raise UserError(
+        f"{path}: q {tokens.q.shape}, z_hat {tokens.z_hat.shape} and delta "
+        f"{tokens.delta.shape} disagree on the number of scenarios"
+    )
+  arrays = {
+      "q": np.asarray(tokens.q, np.int32),
+      "z_hat": np.asarray(tokens.z_hat, np.float32),
+      "delta": np.asarray(tokens.delta, np.float32),
+  }
   _write_npz(Path(path), arrays, {**metadata, "num_scenarios": int(m)})
 
 
-def load_tokens(path: str | os.PathLike, *, dataset_id: str | None = None,
-                num_scenarios: int | None = None) -> tuple[Tokens, dict]:
+def load_tokens(
+    path: str | os.PathLike, *, dataset_id: str | None = None, num_scenarios: int | None = None
+) -> tuple[Tokens, dict]:
   """Reads tokens saved by `save_tokens`.
 
   Args:
@@ -107,19 +113,26 @@ def load_tokens(path: str | os.PathLike, *, dataset_id: str | None = None,
   path = Path(path)
   arrays, metadata = _read_npz(path, ("q", "z_hat", "delta"))
   if dataset_id is not None:
-    identity.check({"dataset_id": metadata.get("dataset_id")}, {"dataset_id": dataset_id},
-                   f"{path} (tokens of data_dir {metadata.get('data_dir')!r}; re-run the "
-                   "tokeniser on this dataset)", TokensMismatchError)
+    identity.check(
+        {"dataset_id": metadata.get("dataset_id")},
+        {"dataset_id": dataset_id},
+        f"{path} (tokens of data_dir {metadata.get('data_dir')!r}; re-run the "
+        "tokeniser on this dataset)",
+        TokensMismatchError,
+    )
   if num_scenarios is not None and arrays["q"].shape[0] != num_scenarios:
-    raise TokensMismatchError(f"{path}: tokens cover {arrays['q'].shape[0]} scenarios, "
-                              f"the split has {num_scenarios}")
+    raise TokensMismatchError(
+        f"{path}: tokens cover {arrays['q'].shape[0]} scenarios, " f"the split has {num_scenarios}"
+    )
   return Tokens(**arrays), metadata
 
 
 def save_gaussians(path: str | os.PathLike, gaussians: Gaussians, metadata: dict) -> None:
   """Writes the per-entry Gaussians + metadata atomically to `path` (.npz)."""
-  arrays = {f.name: np.asarray(getattr(gaussians, f.name), np.float32)
-            for f in dataclasses.fields(Gaussians)}
+  arrays = {
+      f.name: np.asarray(getattr(gaussians, f.name), np.float32)
+      for f in dataclasses.fields(Gaussians)
+  }
   _write_npz(Path(path), arrays, metadata)
 
 

@@ -117,7 +117,7 @@ def append_jsonl(path: str | os.PathLike, record: Any) -> None:
   fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
   try:
     while data:
-      data = data[os.write(fd, data):]
+      data = data[os.write(fd, data) :]
   finally:
     os.close(fd)
 

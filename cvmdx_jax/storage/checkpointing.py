@@ -106,8 +106,9 @@ def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
   return {_path_key(p): (tuple(x.shape), np.dtype(x.dtype).name) for p, x in leaves}
 
 
-def check_structure(saved_meta: Any, abstract_state: Any, where: str,
-                    partial: bool = False) -> None:
+def check_structure(
+    saved_meta: Any, abstract_state: Any, where: str, partial: bool = False
+) -> None:
   """Raises CheckpointMismatchError when leaves, shapes or dtypes differ, naming the leaf.
 
   With `partial`, leaves of the checkpoint that `abstract_state` lacks are allowed.
@@ -122,13 +123,16 @@ def check_structure(saved_meta: Any, abstract_state: Any, where: str,
         continue
       problems.append(f"leaf {k!r} {saved[k][0]} in the checkpoint but not expected")
     elif saved[k] != want[k]:
-      problems.append(f"leaf {k!r}: checkpoint shape {saved[k][0]} {saved[k][1]}, "
-                      f"expected shape {want[k][0]} {want[k][1]}")
+      problems.append(
+          f"leaf {k!r}: checkpoint shape {saved[k][0]} {saved[k][1]}, "
+          f"expected shape {want[k][0]} {want[k][1]}"
+      )
   if problems:
     raise CheckpointMismatchError(
         f"checkpoint {where} does not match the expected state (other model size?): "
-        + "; ".join(problems[:8]) + (f"; ... {len(problems) - 8} more" if len(problems) > 8
-                                     else ""))
+        + "; ".join(problems[:8])
+        + (f"; ... {len(problems) - 8} more" if len(problems) > 8 else "")
+    )
 
 
 def _remove_temporaries(root: Path) -> None:
@@ -143,8 +147,7 @@ def _join_orbax_threads(timeout_s: float = 60.0) -> None:
   none writes into a temporary directory after it has been removed."""
   deadline = time.monotonic() + timeout_s
   for thread in threading.enumerate():
-    if thread is not threading.current_thread() and type(thread).__module__.startswith(
-        "orbax"):
+    if thread is not threading.current_thread() and type(thread).__module__.startswith("orbax"):
       try:
         thread.join(max(0.0, deadline - time.monotonic()))
       except Exception:  # pylint: disable=broad-except
@@ -154,8 +157,12 @@ def _join_orbax_threads(timeout_s: float = 60.0) -> None:
 @jax.jit
 def _nan_leaves(leaves: list) -> jax.Array:
   """(L,) bool: whether each leaf holds a NaN (non-float leaves: False)."""
-  return jnp.stack([jnp.isnan(x).any() if jnp.issubdtype(x.dtype, jnp.inexact)
-                    else jnp.zeros((), bool) for x in leaves])
+  return jnp.stack(
+      [
+          jnp.isnan(x).any() if jnp.issubdtype(x.dtype, jnp.inexact) else jnp.zeros((), bool)
+          for x in leaves
+      ]
+  )
 
 
 def _refuse_nan(state: Any, where: Path) -> None:
@@ -170,7 +177,8 @@ def _refuse_nan(state: Any, where: Path) -> None:
   if bad.size:
     raise CheckpointMismatchError(
         f"checkpoint {where} holds NaN in {_path_key(paths[bad[0]])!r} (a diverged run): "
-        "delete this step directory to fall back to an older one, or retrain")
+        "delete this step directory to fall back to an older one, or retrain"
+    )
 
 
 def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[int], list[Path]]:
@@ -180,7 +188,8 @@ def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[in
   for p in root.iterdir() if root.is_dir() else ():
     if p.is_dir() and p.name.isdigit():
       complete = (p / _COMMIT_MARKER).is_file() and (
-          not with_manifest or (p / checksums.MANIFEST).is_file())
+          not with_manifest or (p / checksums.MANIFEST).is_file()
+      )
       (done if complete else partial).append(p)
   return sorted(int(p.name) for p in done), partial
 
@@ -192,8 +201,7 @@ class Checkpoints:
   with `writable=True` unfinished step and temporary directories are deleted on opening.
   """
 
-  def __init__(self, root: str | os.PathLike, *, keep: int | None = None,
-               writable: bool = True):
+  def __init__(self, root: str | os.PathLike, *, keep: int | None = None, writable: bool = True):
     self.root = Path(root).absolute()  # orbax requires absolute paths
     self._steps, partial = _complete_steps(self.root, with_manifest=writable)
     self._ckptr, self._failed = None, False
@@ -206,12 +214,15 @@ class Checkpoints:
     try:
       with _quiet_orbax():
         self._ckptr = ocp.training.Checkpointer(
-            self.root, preservation_policy=policy.LatestN(keep) if keep else None,
-            cleanup_tmp_directories=True)
+            self.root,
+            preservation_policy=policy.LatestN(keep) if keep else None,
+            cleanup_tmp_directories=True,
+        )
     except Exception as e:  # orbax reads every step's metadata here
       raise CheckpointMismatchError(
           f"checkpoint directory {self.root} holds an unreadable checkpoint "
-          f"({type(e).__name__}: {e})") from e
+          f"({type(e).__name__}: {e})"
+      ) from e
 
   def __enter__(self) -> "Checkpoints":
     return self
@@ -241,8 +252,14 @@ class Checkpoints:
     custom = {"cvmdx": identity.to_json(metadata, "checkpoint metadata")}
     try:
       with _holding_orbax_logs():
-        self._ckptr.save(step, state, checkpointable_name=_STATE, force=True, overwrite=True,
-                         custom_metadata=custom)
+        self._ckptr.save(
+            step,
+            state,
+            checkpointable_name=_STATE,
+            force=True,
+            overwrite=True,
+            custom_metadata=custom,
+        )
         self._ckptr.wait()
     except BaseException:
       self._failed = True
@@ -297,7 +314,8 @@ class Checkpoints:
     except checksums.CorruptRunError as e:
       raise CheckpointMismatchError(
           f"checkpoint {where} is corrupt: {e}; delete this step directory to fall back to "
-          "an older one, or retrain") from e
+          "an older one, or retrain"
+      ) from e
     try:
       with _quiet_orbax():
         meta = ocp.metadata(where, _STATE)
@@ -305,7 +323,8 @@ class Checkpoints:
         raise ValueError("no readable pytree metadata")
     except Exception as e:
       raise CheckpointMismatchError(
-          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})") from e
+          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})"
+      ) from e
     check_structure(meta.metadata, abstract_state, str(where), partial)
     context = ocp.Context()
     context.pytree.loading.partial_load = partial
@@ -315,7 +334,8 @@ class Checkpoints:
       jax.block_until_ready(state)
     except Exception as e:
       raise CheckpointMismatchError(
-          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__})") from e
+          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__})"
+      ) from e
     custom = meta.custom_metadata or {}
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
@@ -323,8 +343,9 @@ class Checkpoints:
     return state, custom["cvmdx"]
 
 
-def load_latest(root: str | os.PathLike, abstract_state: Any, *,
-                partial: bool = False) -> tuple[Any, Any]:
+def load_latest(
+    root: str | os.PathLike, abstract_state: Any, *, partial: bool = False
+) -> tuple[Any, Any]:
   """Restores the latest complete step under `root` (see `Checkpoints.load`).
 
   Raises:

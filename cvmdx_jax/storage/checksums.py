@@ -115,13 +115,16 @@ def read_bytes(path: str | os.PathLike) -> bytes:
   data = path.read_bytes()
   entry = _read_manifest(path.parent).get(path.name)
   if entry is None:
-    raise CorruptRunError(f"{path}: no checksum in {path.parent / MANIFEST} (a file of an "
-                          "older version, or copied without its manifest); rerun the command "
-                          "that wrote it")
+    raise CorruptRunError(
+        f"{path}: no checksum in {path.parent / MANIFEST} (a file of an "
+        "older version, or copied without its manifest); rerun the command "
+        "that wrote it"
+    )
   if sha256(data) not in _digests(entry):
     raise CorruptRunError(
         f"{path}: content does not match its sha256 in {path.parent / MANIFEST} (the file "
-        "is corrupt or was edited); restore it or rerun the command that wrote it")
+        "is corrupt or was edited); restore it or rerun the command that wrote it"
+    )
   return data
 
 
@@ -168,8 +171,11 @@ def record_tree(directory: str | os.PathLike) -> None:
 
 
 def _tree_digests(directory: Path) -> dict[str, str]:
-  return {p.relative_to(directory).as_posix(): file_sha256(p)
-          for p in sorted(directory.rglob("*")) if p.is_file() and p.name != MANIFEST}
+  return {
+      p.relative_to(directory).as_posix(): file_sha256(p)
+      for p in sorted(directory.rglob("*"))
+      if p.is_file() and p.name != MANIFEST
+  }
 
 
 def verify_tree(directory: str | os.PathLike) -> None:
@@ -181,5 +187,6 @@ def verify_tree(directory: str | os.PathLike) -> None:
   saved, now = _read_manifest(directory), _tree_digests(directory)
   bad = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
   if bad:
-    raise CorruptRunError(f"file(s) {bad[:4]} below {directory} differ from their sha256 "
-                          f"in its {MANIFEST}")
+    raise CorruptRunError(
+        f"file(s) {bad[:4]} below {directory} differ from their sha256 " f"in its {MANIFEST}"
+    )

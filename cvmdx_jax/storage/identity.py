@@ -78,14 +78,18 @@ def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
   return {prefix: value}
 
 
-def differing_keys(saved: Any, expected: Any,
-                   names: tuple[str, str] = ("saved", "expected")) -> list[str]:
+def differing_keys(
+    saved: Any, expected: Any, names: tuple[str, str] = ("saved", "expected")
+) -> list[str]:
   """The dotted keys where `saved` and `expected` (JSON-able) differ, each as
   "key: saved X, expected Y" (`names` replaces the two words); empty when they are equal
   after JSON normalisation."""
   a, b = _flatten(to_json(saved)), _flatten(to_json(expected))
-  return [f"{k}: {names[0]} {a.get(k, '<absent>')!r}, {names[1]} {b.get(k, '<absent>')!r}"
-          for k in sorted(set(a) | set(b)) if a.get(k, KeyError) != b.get(k, KeyError)]
+  return [
+      f"{k}: {names[0]} {a.get(k, '<absent>')!r}, {names[1]} {b.get(k, '<absent>')!r}"
+      for k in sorted(set(a) | set(b))
+      if a.get(k, KeyError) != b.get(k, KeyError)
+  ]
 
 
 def check(saved: Any, expected: Any, what: str, error: type[Exception] = ValueError) -> None:

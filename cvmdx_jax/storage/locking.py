@@ -91,6 +91,7 @@ def _agree(ok: bool, count: int) -> bool:
     return ok
   import numpy as np
   from jax.experimental import multihost_utils
+
   return bool(np.all(multihost_utils.process_allgather(np.int32(ok))))
 
 
@@ -122,17 +123,21 @@ def hold(workdir: str | os.PathLike) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = _try_lock(path)
   except OSError as e:
-    raise WorkdirError(f"workdir {path.parent}: cannot create its lock file {path.name} "
-                       f"({e.strerror or e})") from e
+    raise WorkdirError(
+        f"workdir {path.parent}: cannot create its lock file {path.name} " f"({e.strerror or e})"
+    ) from e
   if not _agree(fd is not None, count):
     if fd is not None:  # ours, but the run stops: leave the directory as it was
       path.unlink()
       os.close(fd)
-      raise WorkdirLockedError(f"workdir {path.parent} is locked by another process of a "
-                               "second run; nothing was written")
+      raise WorkdirLockedError(
+          f"workdir {path.parent} is locked by another process of a "
+          "second run; nothing was written"
+      )
     raise WorkdirLockedError(
         f"workdir {path.parent} is in use by {holder(path)} (lock file {path}); wait for that "
-        "run to finish or choose another workdir")
+        "run to finish or choose another workdir"
+    )
   try:
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()} {socket.gethostname()}\n".encode())

@@ -62,8 +62,10 @@ def wta_loss(trajectories, logits, future, weight, cls_weight: float):
   regression = jnp.take_along_axis(ade, winner[:, None], axis=-1)[:, 0]
   ce = -jnp.take_along_axis(jax.nn.log_softmax(logits), winner[:, None], axis=-1)[:, 0]
   mean = lambda v: jnp.sum(weight * v) / jnp.maximum(jnp.sum(weight), 1.0)
-  return (mean(regression + cls_weight * ce),
-          {"wta_ade": mean(regression), "cross_entropy": mean(ce), "winner": winner})
+  return (
+      mean(regression + cls_weight * ce),
+      {"wta_ade": mean(regression), "cross_entropy": mean(ce), "winner": winner},
+  )
 
 
 def forward(graphdef, params, model_cfg: MultipleChoiceConfig, inputs):
@@ -81,8 +83,7 @@ def evaluate(graphdef, params, model_cfg, data, cls_weight: float) -> dict:
   gt = data["future"]
   loss, parts = wta_loss(trajectories, logits, gt, jnp.ones(len(gt)), cls_weight)
   share = jnp.mean(jax.nn.one_hot(parts.pop("winner"), model_cfg.num_hypotheses), axis=0)
-  return {"loss": loss, **parts, **point_readouts(trajectories, logits, gt),
-          "head_share": share}
+  return {"loss": loss, **parts, **point_readouts(trajectories, logits, gt), "head_share": share}
 
 
 def point_readouts(trajectories, logits, gt) -> dict:
@@ -93,10 +94,14 @@ def point_readouts(trajectories, logits, gt) -> dict:
   valid = jnp.ones(probs.shape, bool)
   likely = metrics.most_likely(trajectories, probs)
   mean = jnp.einsum("bk,bktc->btc", probs, trajectories, precision=constants.EXACT_MATMUL)
-  return {"min_ade": jnp.mean(metrics.min_ade_k(trajectories, gt, valid)),
-          "min_fde": jnp.mean(metrics.min_fde_k(trajectories, gt, valid)),
-          "ml_ade": jnp.mean(metrics.ade(likely, gt)), "ml_fde": jnp.mean(metrics.fde(likely, gt)),
-          "mean_ade": jnp.mean(metrics.ade(mean, gt)), "mean_fde": jnp.mean(metrics.fde(mean, gt))}
+  return {
+      "min_ade": jnp.mean(metrics.min_ade_k(trajectories, gt, valid)),
+      "min_fde": jnp.mean(metrics.min_fde_k(trajectories, gt, valid)),
+      "ml_ade": jnp.mean(metrics.ade(likely, gt)),
+      "ml_fde": jnp.mean(metrics.fde(likely, gt)),
+      "mean_ade": jnp.mean(metrics.ade(mean, gt)),
+      "mean_fde": jnp.mean(metrics.fde(mean, gt)),
+  }
 
 
 def optimizer(t: BaselineTrainConfig, total_steps: int):
@@ -104,11 +109,15 @@ def optimizer(t: BaselineTrainConfig, total_steps: int):
   global-norm clipping."""
   warmup = min(t.warmup_steps, max(total_steps // 10, 1))
   lr = optax.warmup_cosine_decay_schedule(
-      init_value=t.learning_rate * 0.01, peak_value=t.learning_rate,
-      warmup_steps=warmup, decay_steps=max(total_steps, warmup + 1),
-      end_value=t.learning_rate * t.end_lr_fraction)
-  return optax.chain(optax.clip_by_global_norm(t.grad_clip),
-                     optax.adamw(lr, weight_decay=t.weight_decay))
+      init_value=t.learning_rate * 0.01,
+      peak_value=t.learning_rate,
+      warmup_steps=warmup,
+      decay_steps=max(total_steps, warmup + 1),
+      end_value=t.learning_rate * t.end_lr_fraction,
+  )
+  return optax.chain(
+      optax.clip_by_global_norm(t.grad_clip), optax.adamw(lr, weight_decay=t.weight_decay)
+  )
 
 
 def make_init_fn(model_cfg, tx, val_metrics, init=mc.init):
@@ -118,16 +127,26 @@ def make_init_fn(model_cfg, tx, val_metrics, init=mc.init):
   def init_fn(key):
     _, params = init(model_cfg, key)
     # copies, so that donating the state never donates one buffer twice
-    best = {"params": jax.tree.map(jnp.copy, params),
-            "val_score": jnp.asarray(jnp.inf, jnp.float32), "epoch": jnp.zeros((), jnp.int32)}
+    best = {
+        "params": jax.tree.map(jnp.copy, params),
+        "val_score": jnp.asarray(jnp.inf, jnp.float32),
+        "epoch": jnp.zeros((), jnp.int32),
+    }
     val = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), val_metrics)
-    return {"params": params, "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
-            "val": val, "best": best}
+    return {
+        "params": params,
+        "opt_state": tx.init(params),
+        "step": jnp.zeros((), jnp.int32),
+        "val": val,
+        "best": best,
+    }
+
   return init_fn
 
 
-def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
-                 steps_per_epoch: int, select: str):
+def make_step_fn(
+    graphdef, model_cfg, tx, *, cls_weight: float, val: dict, steps_per_epoch: int, select: str
+):
   """The pure train step of the shared loop: WTA loss, AdamW update and, at the last
   step of each epoch, the val evaluation (`evaluate`) and the choice of the epoch with
   the lowest val `select` (one of `config.runs.SELECT_METRICS`)."""
@@ -139,12 +158,16 @@ def make_step_fn(graphdef, model_cfg, tx, *, cls_weight: float, val: dict,
     return loss, {"wta_ade": parts["wta_ade"], "cross_entropy": parts["cross_entropy"]}
 
   return selecting_step_fn(
-      tx, loss_fn, lambda params, data: evaluate(graphdef, params, model_cfg, data, cls_weight),
-      val=val, steps_per_epoch=steps_per_epoch, select=select)
+      tx,
+      loss_fn,
+      lambda params, data: evaluate(graphdef, params, model_cfg, data, cls_weight),
+      val=val,
+      steps_per_epoch=steps_per_epoch,
+      select=select,
+  )
 
 
-def selecting_step_fn(tx, loss_fn, evaluate_fn, *, val: dict, steps_per_epoch: int,
-                      select: str):
+def selecting_step_fn(tx, loss_fn, evaluate_fn, *, val: dict, steps_per_epoch: int, select: str):
   """A pure train step of the shared loop: `loss_fn(params, batch, step) -> (loss, {name:
   scalar})`, the optimiser `tx` and, at the last step of each epoch, `evaluate_fn(params,
   val) -> {name: value}` and the choice of the epoch with the lowest val `select`."""
@@ -153,7 +176,8 @@ def selecting_step_fn(tx, loss_fn, evaluate_fn, *, val: dict, steps_per_epoch: i
   def step_fn(state, batch, key):
     del key  # the step is deterministic given the batch
     (loss, parts), grads = jax.value_and_grad(
-        lambda p: loss_fn(p, batch, state["step"]), has_aux=True)(state["params"])
+        lambda p: loss_fn(p, batch, state["step"]), has_aux=True
+    )(state["params"])
     updates, opt_state = tx.update(grads, state["opt_state"], state["params"])
     params = optax.apply_updates(state["params"], updates)
     step = state["step"] + 1
@@ -164,8 +188,9 @@ def selecting_step_fn(tx, loss_fn, evaluate_fn, *, val: dict, steps_per_epoch: i
       better = scores[select] < state["best"]["val_score"]
       return scores, jax.tree.map(lambda n, o: jnp.where(better, n, o), this, state["best"])
 
-    scores, best = jax.lax.cond(step % steps_per_epoch == 0, choose,
-                                lambda _: (state["val"], state["best"]), None)
+    scores, best = jax.lax.cond(
+        step % steps_per_epoch == 0, choose, lambda _: (state["val"], state["best"]), None
+    )
     new = {"params": params, "opt_state": opt_state, "step": step, "val": scores, "best": best}
     return new, {"loss": loss, **parts, "grad_norm": optax.tree.norm(grads)}
 
@@ -177,11 +202,17 @@ def split_arrays(config: BaselineRunConfig, split: str) -> tuple[dict, dict]:
   scenarios = dataset_lib.load_split(config.data_dir, split)
   toks, meta = tokens_lib.load_tokens(
       tokens_lib.tokens_path(config.tokenizer_dir, split),
-      dataset_id=dataset_lib.dataset_id(config.data_dir), num_scenarios=len(scenarios))
-  arrays = {"q": toks.q.astype(np.int32), "delta": toks.delta.astype(np.float32),
-            "ego": np.asarray(_ego_features(scenarios.xi, scenarios.mask)),
-            "v0": scenarios.v0.astype(np.float32), "psi0": scenarios.psi0.astype(np.float32),
-            "future": scenarios.future.astype(np.float32)}
+      dataset_id=dataset_lib.dataset_id(config.data_dir),
+      num_scenarios=len(scenarios),
+  )
+  arrays = {
+      "q": toks.q.astype(np.int32),
+      "delta": toks.delta.astype(np.float32),
+      "ego": np.asarray(_ego_features(scenarios.xi, scenarios.mask)),
+      "v0": scenarios.v0.astype(np.float32),
+      "psi0": scenarios.psi0.astype(np.float32),
+      "future": scenarios.future.astype(np.float32),
+  }
   return arrays, meta
 
 
@@ -201,24 +232,42 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
   tx = optimizer(config.train, steps_per_epoch * config.train.num_epochs)
   graphdef = mc.make_graphdef(model_cfg)
   cls_weight = config.loss.cls_weight
-  val_shapes = jax.eval_shape(lambda p: evaluate(graphdef, p, model_cfg, val, cls_weight),
-                              jax.eval_shape(lambda k: mc.init(model_cfg, k)[1],
-                                             jax.random.key(0)))
+  val_shapes = jax.eval_shape(
+      lambda p: evaluate(graphdef, p, model_cfg, val, cls_weight),
+      jax.eval_shape(lambda k: mc.init(model_cfg, k)[1], jax.random.key(0)),
+  )
 
   return loop.train(
-      workdir=workdir, init_fn=make_init_fn(model_cfg, tx, val_shapes),
-      step_fn=make_step_fn(graphdef, model_cfg, tx, cls_weight=cls_weight, val=val,
-                           steps_per_epoch=steps_per_epoch, select=config.train.select_metric),
-      data=data, batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
-      seed=config.seed, fingerprint=fingerprints.baseline(config, dataset_id, meta),
-      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      epoch_end_fn=val_summary, on_start=lambda: layout.write_run_config(workdir, config),
-      desc="baseline")
+      workdir=workdir,
+      init_fn=make_init_fn(model_cfg, tx, val_shapes),
+      step_fn=make_step_fn(
+          graphdef,
+          model_cfg,
+          tx,
+          cls_weight=cls_weight,
+          val=val,
+          steps_per_epoch=steps_per_epoch,
+          select=config.train.select_metric,
+      ),
+      data=data,
+      batch_size=config.train.batch_size,
+      num_epochs=config.train.num_epochs,
+      seed=config.seed,
+      fingerprint=fingerprints.baseline(config, dataset_id, meta),
+      checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep,
+      epoch_end_fn=val_summary,
+      on_start=lambda: layout.write_run_config(workdir, config),
+      desc="baseline",
+  )
 
 
 def val_summary(state, epoch) -> dict:
   """The metrics line's val part (`loop.train`'s `epoch_end_fn`): the last val read-outs
   as `val_<name>`, the chosen epoch and its val score."""
   del epoch
-  return {**{f"val_{k}": v for k, v in state["val"].items()},
-          "best_epoch": state["best"]["epoch"], "best_val_score": state["best"]["val_score"]}
+  return {
+      **{f"val_{k}": v for k, v in state["val"].items()},
+      "best_epoch": state["best"]["epoch"],
+      "best_val_score": state["best"]["val_score"],
+  }

@@ -37,10 +37,15 @@ def optimizer(t: DiffusionTrainConfig, total_steps: int):
   """AdamW with linear warm-up, cosine decay to `t.min_lr` and global-norm clipping."""
   warmup = min(t.warmup_steps, max(total_steps // 10, 1))
   lr = optax.warmup_cosine_decay_schedule(
-      init_value=t.learning_rate * 0.01, peak_value=t.learning_rate, warmup_steps=warmup,
-      decay_steps=max(total_steps, warmup + 1), end_value=t.min_lr)
-  return optax.chain(optax.clip_by_global_norm(t.grad_clip),
-                     optax.adamw(lr, weight_decay=t.weight_decay))
+      init_value=t.learning_rate * 0.01,
+      peak_value=t.learning_rate,
+      warmup_steps=warmup,
+      decay_steps=max(total_steps, warmup + 1),
+      end_value=t.min_lr,
+  )
+  return optax.chain(
+      optax.clip_by_global_norm(t.grad_clip), optax.adamw(lr, weight_decay=t.weight_decay)
+  )
 
 
 def make_init_fn(cfg: UNetConfig, tx):
@@ -49,14 +54,19 @@ def make_init_fn(cfg: UNetConfig, tx):
   def init_fn(key):
     _, params = unet1d.init_unet(cfg, key)
     # a copy, so that donating the state never donates one buffer twice
-    return {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
-            "opt_state": tx.init(params),
-            "step": jnp.zeros((), jnp.int32)}
+    return {
+        "params": params,
+        "ema_params": jax.tree.map(jnp.copy, params),
+        "opt_state": tx.init(params),
+        "step": jnp.zeros((), jnp.int32),
+    }
+
   return init_fn
 
 
-def make_step_fn(graphdef, cfg: UNetConfig, tx, *, cond_drop_prob: float,
-                 ema_decay: float, num_steps: int):
+def make_step_fn(
+    graphdef, cfg: UNetConfig, tx, *, cond_drop_prob: float, ema_decay: float, num_steps: int
+):
   """The pure train step of the shared loop: v-loss (+ the intent classifier's
   cross-entropy where `cfg.num_intents`, reported as "intent_ce"; `batch["label"]` then
   holds the classes), AdamW update, EMA."""
@@ -69,17 +79,28 @@ def make_step_fn(graphdef, cfg: UNetConfig, tx, *, cond_drop_prob: float,
     def loss_fn(params):
       ego = batch["ego"] if cfg.cond_dim else None
       model = lambda x_t, t, q: unet1d.apply_unet(graphdef, params, x_t, t, q, k_drop, ego)
-      loss = v_loss(model, batch["x0"], batch["q"], k_loss, schedule, null_cond=cfg.null_token,
-                    cond_drop_prob=cond_drop_prob, weight=weight)
+      loss = v_loss(
+          model,
+          batch["x0"],
+          batch["q"],
+          k_loss,
+          schedule,
+          null_cond=cfg.null_token,
+          cond_drop_prob=cond_drop_prob,
+          weight=weight,
+      )
       if not cfg.num_intents:
         return loss, {}
-      logits = unet1d.apply_intent(graphdef, params, ego[:, :cfg.intent_features])
+      logits = unet1d.apply_intent(graphdef, params, ego[:, : cfg.intent_features])
       ce = intent_cross_entropy(logits, batch["label"], weight)
       return loss + ce, {"intent_ce": ce}
 
     (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
     return apply_gradients(state, grads, tx, ema_decay), {
-        "loss": loss, "grad_norm": optax.tree.norm(grads), **aux}
+        "loss": loss,
+        "grad_norm": optax.tree.norm(grads),
+        **aux,
+    }
 
   return step_fn
 
@@ -87,8 +108,9 @@ def make_step_fn(graphdef, cfg: UNetConfig, tx, *, cond_drop_prob: float,
 def intent_cross_entropy(logits, label, weight):
   """The weighted mean over examples of -log softmax(logits)[label]; logits (B, C),
   label (B,) int, weight (B,) (0 for padding rows)."""
-  return losses.weighted_mean(optax.softmax_cross_entropy_with_integer_labels(logits, label),
-                             weight)
+  return losses.weighted_mean(
+      optax.softmax_cross_entropy_with_integer_labels(logits, label), weight
+  )
 
 
 def apply_gradients(state, grads, tx, ema_decay: float):
@@ -103,8 +125,9 @@ def apply_gradients(state, grads, tx, ema_decay: float):
   return {**state, "params": params, "ema_params": ema, "opt_state": opt_state, "step": step}
 
 
-def training_data(config: DiffusionRunConfig, *, delta: bool = False
-                  ) -> tuple[dict, int, str, dict]:
+def training_data(
+    config: DiffusionRunConfig, *, delta: bool = False
+) -> tuple[dict, int, str, dict]:
   """(arrays {x0, q[, ego][, class_weight][, label][, delta]}, Q, dataset id, tokens
   metadata) of the training split; `class_weight` (M,) only where `diffusion.class_weights`
   is not all 1; `label` (M,) the maneuver classes of an intent conditioning (whose `ego`
@@ -113,8 +136,11 @@ def training_data(config: DiffusionRunConfig, *, delta: bool = False
   d = config.diffusion
   scenarios = dataset_lib.load_split(config.data_dir, "train")
   dataset_id = dataset_lib.dataset_id(config.data_dir)
-  toks, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(config.tokenizer_dir, "train"),
-                                      dataset_id=dataset_id, num_scenarios=len(scenarios))
+  toks, meta = tokens_lib.load_tokens(
+      tokens_lib.tokens_path(config.tokenizer_dir, "train"),
+      dataset_id=dataset_id,
+      num_scenarios=len(scenarios),
+  )
   data, controls = {"q": toks.q.astype(np.int32)}, scenarios.controls
   if delta:
     data["delta"] = np.asarray(toks.delta, np.float32)
@@ -127,8 +153,9 @@ def training_data(config: DiffusionRunConfig, *, delta: bool = False
     data["class_weight"] = np.asarray(d.class_weights, np.float32)[scenarios.label]
   if d.intent_conditioning:
     data["label"] = np.asarray(scenarios.label, np.int32)
-    data["ego"] = np.concatenate([data["ego"], np.eye(d.num_intents, dtype=np.float32)[
-        data["label"]]], axis=-1)
+    data["ego"] = np.concatenate(
+        [data["ego"], np.eye(d.num_intents, dtype=np.float32)[data["label"]]], axis=-1
+    )
   return data, int(meta["codebook_size"]), dataset_id, meta
 
 
@@ -138,8 +165,14 @@ def init_and_step(config: DiffusionRunConfig, total_steps: int):
   cfg = config.model
   graphdef = unet1d.make_graphdef(cfg)
   tx = optimizer(config.train, total_steps)
-  step_fn = make_step_fn(graphdef, cfg, tx, cond_drop_prob=config.diffusion.cond_drop_prob,
-                         ema_decay=config.train.ema_decay, num_steps=config.diffusion.num_steps)
+  step_fn = make_step_fn(
+      graphdef,
+      cfg,
+      tx,
+      cond_drop_prob=config.diffusion.cond_drop_prob,
+      ema_decay=config.train.ema_decay,
+      num_steps=config.diffusion.num_steps,
+  )
   return graphdef, make_init_fn(cfg, tx), step_fn
 
 
@@ -155,9 +188,16 @@ def train(config: DiffusionRunConfig, workdir: str | os.PathLike):
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   _, init_fn, step_fn = init_and_step(config, total_steps)
   return loop.train(
-      workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=data,
-      batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
+      workdir=workdir,
+      init_fn=init_fn,
+      step_fn=step_fn,
+      data=data,
+      batch_size=config.train.batch_size,
+      num_epochs=config.train.num_epochs,
+      seed=config.seed,
       fingerprint=fingerprints.diffusion(config, dataset_id, tokens_meta),
-      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      on_start=lambda: layout.write_run_config(workdir, config), desc="diffusion")
-
+      checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep,
+      on_start=lambda: layout.write_run_config(workdir, config),
+      desc="diffusion",
+  )

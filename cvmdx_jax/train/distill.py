@@ -35,8 +35,7 @@ from flax import traverse_util
 from cvmdx_jax import ego_motion
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
-from cvmdx_jax.diffusion import cosine_schedule, guidance_weight, guided_v_fn, param
-from cvmdx_jax.diffusion import distillation
+from cvmdx_jax.diffusion import cosine_schedule, distillation, guidance_weight, guided_v_fn, param
 from cvmdx_jax.diffusion.losses import weighted_mse
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference.bundles import Denoiser, load_denoiser
@@ -46,12 +45,13 @@ from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import loop
 
+
 class TeacherMismatchError(UserError):
   """The teacher cannot teach this run (wrong kind, steps or data)."""
 
 
 def stage_of(teacher: DiffusionRunConfig, guided_progressive: bool = False) -> str:
-  """"progressive" for a student teacher; for a guided denoiser "guided_progressive" if
+  """ "progressive" for a student teacher; for a guided denoiser "guided_progressive" if
   asked, else "guidance"."""
   if teacher.diffusion.guidance_input:
     return "progressive"
@@ -63,13 +63,19 @@ def student_config(teacher: DiffusionRunConfig, config: DistillRunConfig) -> Dif
   distillation's seed and optimiser, and the distilled sampler at `config.steps` (an
   intent classifier is the teacher's, copied)."""
   diffusion = dataclasses.replace(teacher.diffusion, guidance_input=True)
-  sampling = dataclasses.replace(teacher.sampling, sampler="distilled", steps=config.steps,
-                                 mode="paper")
+  sampling = dataclasses.replace(
+      teacher.sampling, sampler="distilled", steps=config.steps, mode="paper"
+  )
   return dataclasses.replace(
-      teacher, data_dir=config.data_dir or teacher.data_dir,
-      tokenizer_dir=config.tokenizer_dir or teacher.tokenizer_dir, seed=config.seed,
+      teacher,
+      data_dir=config.data_dir or teacher.data_dir,
+      tokenizer_dir=config.tokenizer_dir or teacher.tokenizer_dir,
+      seed=config.seed,
       model=dataclasses.replace(teacher.model, cond_dim=diffusion.cond_dim),
-      diffusion=diffusion, train=config.train, sampling=sampling)
+      diffusion=diffusion,
+      train=config.train,
+      sampling=sampling,
+  )
 
 
 def student_params(teacher_params: dict, fresh: dict) -> dict:
@@ -84,16 +90,19 @@ def student_params(teacher_params: dict, fresh: dict) -> dict:
     if old is not None and old.shape == leaf.shape:
       out[path] = old
     elif old is not None and path[-1] == "kernel" and old.shape[1:] == leaf.shape[1:]:
-      out[path] = jnp.concatenate([old, jnp.zeros(
-          (leaf.shape[0] - old.shape[0],) + leaf.shape[1:], leaf.dtype)])
+      out[path] = jnp.concatenate(
+          [old, jnp.zeros((leaf.shape[0] - old.shape[0],) + leaf.shape[1:], leaf.dtype)]
+      )
     elif old is None and path[0] == "cond_mlp2":
       out[path] = jnp.zeros_like(leaf)
     elif old is None and path[0] in ("cond_mlp1", "cond_mlp_hidden"):
       out[path] = leaf
     else:
-      raise TeacherMismatchError(f"student parameter {'/'.join(map(str, path))} "
-                                 f"{leaf.shape} has no teacher counterpart "
-                                 f"({None if old is None else old.shape})")
+      raise TeacherMismatchError(
+          f"student parameter {'/'.join(map(str, path))} "
+          f"{leaf.shape} has no teacher counterpart "
+          f"({None if old is None else old.shape})"
+      )
   return traverse_util.unflatten_dict(out)
 
 
@@ -103,21 +112,28 @@ def make_init_fn(teacher_params: dict, cfg: UNetConfig, tx):
   def init_fn(key):
     _, fresh = unet1d.init_unet(cfg, key)
     params = student_params(teacher_params, fresh)
-    return {"params": params, "ema_params": jax.tree.map(jnp.copy, params),
-            "opt_state": tx.init(params), "step": jnp.zeros((), jnp.int32),
-            "teacher": jax.tree.map(jnp.copy, teacher_params)}
+    return {
+        "params": params,
+        "ema_params": jax.tree.map(jnp.copy, params),
+        "opt_state": tx.init(params),
+        "step": jnp.zeros((), jnp.int32),
+        "teacher": jax.tree.map(jnp.copy, teacher_params),
+    }
+
   return init_fn
 
 
-def make_step_fn(teacher: Denoiser, student: DiffusionRunConfig, tx, *, stage: str,
-                 substeps: int):
+def make_step_fn(teacher: Denoiser, student: DiffusionRunConfig, tx, *, stage: str, substeps: int):
   """The pure train step: the teacher's v-target at noised data (for a progressive stage
   `substeps` teacher steps per student step), the student's v-loss, AdamW and the EMA
   (`train.diffusion.apply_gradients`)."""
   d = student.diffusion
   schedule = cosine_schedule(d.num_steps)
-  guidance, steps, clip = student.sampling.guidance, student.sampling.steps, \
-      student.sampling.clip_x0
+  guidance, steps, clip = (
+      student.sampling.guidance,
+      student.sampling.steps,
+      student.sampling.clip_x0,
+  )
   graphdef = unet1d.make_graphdef(student.model)
   film = ego_motion.uses_film(d.conditioning)
 
@@ -129,12 +145,18 @@ def make_step_fn(teacher: Denoiser, student: DiffusionRunConfig, tx, *, stage: s
     w_of = lambda t: guidance_weight(t, delta, d.num_steps, guidance)
     if stage == "progressive":  # the teacher is a student: w is its input
       teacher_v = lambda x, tt: unet1d.apply_unet(
-          teacher.graphdef, state["teacher"], x, tt, q,
-          cond=distillation.student_cond(ego, w_of(tt)))
+          teacher.graphdef,
+          state["teacher"],
+          x,
+          tt,
+          q,
+          cond=distillation.student_cond(ego, w_of(tt)),
+      )
     else:  # the guided pair runs both branches in one call of 2B rows
       pair = lambda x: None if ego is None else jnp.tile(ego, (x.shape[0] // ego.shape[0], 1))
-      model = lambda x, tt, c: unet1d.apply_unet(teacher.graphdef, state["teacher"], x, tt, c,
-                                                 cond=pair(x))
+      model = lambda x, tt, c: unet1d.apply_unet(
+          teacher.graphdef, state["teacher"], x, tt, c, cond=pair(x)
+      )
       teacher_v = guided_v_fn(model, q, teacher.null_token, delta, schedule, guidance)
     if stage == "guidance":
       t = jax.random.randint(k_t, (x0.shape[0],), 0, d.num_steps)
@@ -151,12 +173,13 @@ def make_step_fn(teacher: Denoiser, student: DiffusionRunConfig, tx, *, stage: s
     weight = batch["weight"] * batch.get("class_weight", 1.0)
 
     def loss_fn(params):
-      return weighted_mse(unet1d.apply_unet(graphdef, params, x_t, t, q, cond=cond), target,
-                          weight)
+      return weighted_mse(unet1d.apply_unet(graphdef, params, x_t, t, q, cond=cond), target, weight)
 
     loss, grads = jax.value_and_grad(loss_fn)(state["params"])
-    return (diffusion_train.apply_gradients(state, grads, tx, student.train.ema_decay),
-            {"loss": loss, "grad_norm": optax.tree.norm(grads)})
+    return (
+        diffusion_train.apply_gradients(state, grads, tx, student.train.ema_decay),
+        {"loss": loss, "grad_norm": optax.tree.norm(grads)},
+    )
 
   return step_fn
 
@@ -167,17 +190,20 @@ def check_teacher(teacher: Denoiser, config: DistillRunConfig) -> str:
   if config.guided_progressive and stage != "guided_progressive":
     raise TeacherMismatchError(
         f"guided_progressive: teacher {config.teacher_dir} is a distilled student, not a "
-        "guided denoiser (a student teaches progressive students without it)")
+        "guided denoiser (a student teaches progressive students without it)"
+    )
   k = config.teacher_substeps
   if teacher.progressive and teacher.config.sampling.steps != k * config.steps:
     raise TeacherMismatchError(
         f"teacher {config.teacher_dir} is a progressive student for "
         f"{teacher.config.sampling.steps} steps: with teacher_substeps={k} it teaches a "
-        f"student for {teacher.config.sampling.steps / k:g} steps, not steps={config.steps}")
+        f"student for {teacher.config.sampling.steps / k:g} steps, not steps={config.steps}"
+    )
   if k * config.steps >= teacher.config.diffusion.num_steps:
     raise TeacherMismatchError(
         f"steps={config.steps}: the teacher's grid of teacher_substeps x steps = "
-        f"{k * config.steps} must stay below T = {teacher.config.diffusion.num_steps}")
+        f"{k * config.steps} must stay below T = {teacher.config.diffusion.num_steps}"
+    )
   return stage
 
 
@@ -198,28 +224,46 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
   data, num_tokens, dataset_id, tokens_meta = diffusion_train.training_data(student, delta=True)
   fingerprint = fingerprints.diffusion(student, dataset_id, tokens_meta)
   saved = teacher.fingerprint.to_dict()
-  identity.check({k: saved.get(k) for k in ("dataset_id", "tokenizer")},
-                 {k: fingerprint[k] for k in ("dataset_id", "tokenizer")},
-                 f"teacher {config.teacher_dir} (trained on other data or tokens than "
-                 f"{student.data_dir} / {student.tokenizer_dir})", TeacherMismatchError)
+  identity.check(
+      {k: saved.get(k) for k in ("dataset_id", "tokenizer")},
+      {k: fingerprint[k] for k in ("dataset_id", "tokenizer")},
+      f"teacher {config.teacher_dir} (trained on other data or tokens than "
+      f"{student.data_dir} / {student.tokenizer_dir})",
+      TeacherMismatchError,
+  )
   if num_tokens != teacher.config.model.num_tokens:
-    raise TeacherMismatchError(f"teacher {config.teacher_dir} has "
-                               f"{teacher.config.model.num_tokens} tokens, the tokens have "
-                               f"{num_tokens}")
-  train_cfg = {k: v for k, v in dataclasses.asdict(config.train).items()
-               if k not in ("checkpoint_every", "keep")}
+    raise TeacherMismatchError(
+        f"teacher {config.teacher_dir} has "
+        f"{teacher.config.model.num_tokens} tokens, the tokens have "
+        f"{num_tokens}"
+    )
+  train_cfg = {
+      k: v
+      for k, v in dataclasses.asdict(config.train).items()
+      if k not in ("checkpoint_every", "keep")
+  }
   fingerprint["distill"] = {
-      "stage": stage, "steps": config.steps, "teacher_substeps": config.teacher_substeps,
-      "train": train_cfg, "guidance": dataclasses.asdict(student.sampling.guidance),
+      "stage": stage,
+      "steps": config.steps,
+      "teacher_substeps": config.teacher_substeps,
+      "train": train_cfg,
+      "guidance": dataclasses.asdict(student.sampling.guidance),
       "clip_x0": student.sampling.clip_x0,
-      "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)}}
+      "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)},
+  }
   total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(
-      workdir=workdir, init_fn=make_init_fn(teacher.params, student.model, tx),
-      step_fn=make_step_fn(teacher, student, tx, stage=stage,
-                           substeps=config.teacher_substeps), data=data,
-      batch_size=config.train.batch_size, num_epochs=config.train.num_epochs, seed=config.seed,
-      fingerprint=fingerprint, checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep, on_start=lambda: layout.write_run_config(workdir, student),
-      desc=f"distill ({stage})")
+      workdir=workdir,
+      init_fn=make_init_fn(teacher.params, student.model, tx),
+      step_fn=make_step_fn(teacher, student, tx, stage=stage, substeps=config.teacher_substeps),
+      data=data,
+      batch_size=config.train.batch_size,
+      num_epochs=config.train.num_epochs,
+      seed=config.seed,
+      fingerprint=fingerprint,
+      checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep,
+      on_start=lambda: layout.write_run_config(workdir, student),
+      desc=f"distill ({stage})",
+  )

@@ -59,8 +59,10 @@ def _abstract_state(init_fn: Callable[[jax.Array], State], mesh) -> State:
   abstract = jax.eval_shape(init_fn, init_key(0))
   for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]:
     if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-      raise ValueError(f"init_fn state leaf {jax.tree_util.keystr(path)} is a PRNG key; keep "
-                       "keys out of the train state (train derives them from seed and step)")
+      raise ValueError(
+          f"init_fn state leaf {jax.tree_util.keystr(path)} is a PRNG key; keep "
+          "keys out of the train state (train derives them from seed and step)"
+      )
   rep = sharding.replicated(mesh)
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), abstract)
 
@@ -101,17 +103,22 @@ def _check_finite(metrics: list[dict[str, np.ndarray]], epoch: int, first_step: 
   for i, m in enumerate(metrics):
     for name in _FINITE_METRICS:
       if name in m and not np.isfinite(m[name]):
-        raise TrainingError(f"non-finite {name}={float(m[name])} at global step "
-                            f"{first_step + i} (epoch {epoch}); last good checkpoint kept")
+        raise TrainingError(
+            f"non-finite {name}={float(m[name])} at global step "
+            f"{first_step + i} (epoch {epoch}); last good checkpoint kept"
+        )
 
 
-def _epoch_summary(metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int,
-                   first_step: int) -> dict[str, float]:
+def _epoch_summary(
+    metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int, first_step: int
+) -> dict[str, float]:
   """Weighted means of per-step metrics; TrainingError at the first non-finite loss/grad."""
   _check_finite(metrics, epoch, first_step)
   n = weights.sum(axis=1)
-  return {k: float(np.sum(n * np.array([m[k] for m in metrics], np.float64)) / n.sum())
-          for k in metrics[0]}
+  return {
+      k: float(np.sum(n * np.array([m[k] for m in metrics], np.float64)) / n.sum())
+      for k in metrics[0]
+  }
 
 
 def _to_json_value(value: Any) -> Any:
@@ -125,24 +132,35 @@ def _epoch_order(seed: int, epoch: int, m: int, batch_size: int) -> tuple[np.nda
   return order.reshape(-1, batch_size), weight.reshape(-1, batch_size)
 
 
-def _resume_point(ckpts, workdir: Path, abstract: State, run_meta: dict, steps_per_epoch: int
-                  ) -> tuple[State | None, int, list[dict]]:
+def _resume_point(
+    ckpts, workdir: Path, abstract: State, run_meta: dict, steps_per_epoch: int
+) -> tuple[State | None, int, list[dict]]:
   """(state or None, global step, the step metrics of its unfinished epoch) to resume from:
   the latest epoch checkpoint, or a later preemption checkpoint."""
   done, state = ckpts.latest_epoch or 0, None
   if done:
     state, saved = ckpts.load(done, abstract)
-    identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}",
-                   CheckpointMismatchError)
+    identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}", CheckpointMismatchError)
   stopped = preemption.load_stopped(workdir, abstract, run_meta, done * steps_per_epoch)
   return stopped or (state, done * steps_per_epoch, [])
 
 
-def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], step_fn: StepFn,
-          data: Mapping[str, np.ndarray], batch_size: int, num_epochs: int, seed: int,
-          fingerprint: Any, checkpoint_every: int = 1, keep: int = 2,
-          epoch_end_fn: Callable[[State, int], dict[str, Any]] | None = None,
-          on_start: Callable[[], None] | None = None, desc: str = "train") -> State:
+def train(
+    *,
+    workdir: str | os.PathLike,
+    init_fn: Callable[[jax.Array], State],
+    step_fn: StepFn,
+    data: Mapping[str, np.ndarray],
+    batch_size: int,
+    num_epochs: int,
+    seed: int,
+    fingerprint: Any,
+    checkpoint_every: int = 1,
+    keep: int = 2,
+    epoch_end_fn: Callable[[State, int], dict[str, Any]] | None = None,
+    on_start: Callable[[], None] | None = None,
+    desc: str = "train",
+) -> State:
   """Trains (or resumes, or returns a finished run's final state) data-parallel.
 
   Args:
@@ -182,32 +200,51 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
       is saved (module docstring); exits with status 143 or 130.
   """
   if not locking.is_held(workdir):
-    raise ValueError(f"train: workdir {workdir} is not held; call train inside "
-                     "storage.locking.hold(workdir)")
+    raise ValueError(
+        f"train: workdir {workdir} is not held; call train inside " "storage.locking.hold(workdir)"
+    )
   m = _check_data(data, batch_size)
   if checkpoint_every < 1 or keep < 1:
     raise ValueError(f"train: checkpoint_every={checkpoint_every} and keep={keep} must be >= 1")
   mesh = sharding.data_mesh()
   sharding.check_divisible(batch_size, mesh)
   abstract = _abstract_state(init_fn, mesh)
-  run_meta = {"fingerprint": identity.to_json(fingerprint),
-              "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m}}
+  run_meta = {
+      "fingerprint": identity.to_json(fingerprint),
+      "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m},
+  }
   if jax.process_count() > 1:  # every process must run the same job on the same data
-    sharding.check_same_run({**run_meta, "data": identity.content_id(data),
-                             "workdir": str(Path(workdir).resolve()),
-                             "schedule": [num_epochs, checkpoint_every, keep]},
-                            f"run (workdir {workdir})")
+    sharding.check_same_run(
+        {
+            **run_meta,
+            "data": identity.content_id(data),
+            "workdir": str(Path(workdir).resolve()),
+            "schedule": [num_epochs, checkpoint_every, keep],
+        },
+        f"run (workdir {workdir})",
+    )
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  run = _Run(workdir, init_fn, step_fn, {k: np.asarray(v) for k, v in data.items()},
-             batch_size, seed, run_meta, mesh)
-  with checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts, \
-       preemption.Signals() as signals:
+  run = _Run(
+      workdir,
+      init_fn,
+      step_fn,
+      {k: np.asarray(v) for k, v in data.items()},
+      batch_size,
+      seed,
+      run_meta,
+      mesh,
+  )
+  with (
+      checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts,
+      preemption.Signals() as signals,
+  ):
     state, start, metrics = run.start(ckpts, abstract, on_start)
     with preemption.PeerWatch(workdir / layout.CHECKPOINTS) as watch:
       try:
-        state = run.epochs(state, start, metrics, num_epochs, ckpts, signals,
-                           checkpoint_every, epoch_end_fn, desc)
+        state = run.epochs(
+            state, start, metrics, num_epochs, ckpts, signals, checkpoint_every, epoch_end_fn, desc
+        )
       except Exception as e:  # with several processes a dead peer ends this one here
         watch.settle(e)
         raise
@@ -219,8 +256,17 @@ def train(*, workdir: str | os.PathLike, init_fn: Callable[[jax.Array], State], 
 class _Run:
   """The fixed parts of one `train` call and its two phases: `start` and `epochs`."""
 
-  def __init__(self, workdir: Path, init_fn, step_fn: StepFn, data: dict[str, np.ndarray],
-               batch_size: int, seed: int, run_meta: dict, mesh):
+  def __init__(
+      self,
+      workdir: Path,
+      init_fn,
+      step_fn: StepFn,
+      data: dict[str, np.ndarray],
+      batch_size: int,
+      seed: int,
+      run_meta: dict,
+      mesh,
+  ):
     self.workdir, self.init_fn, self.data, self.mesh = workdir, init_fn, data, mesh
     self.batch_size, self.seed, self.run_meta = batch_size, seed, run_meta
     self.m = next(iter(data.values())).shape[0]
@@ -234,26 +280,43 @@ class _Run:
 
   def start(self, ckpts, abstract: State, on_start) -> tuple[State, int, list[dict]]:
     """(state, global step, step metrics of the unfinished epoch) to go on from."""
-    state, start, metrics = _resume_point(ckpts, self.workdir, abstract, self.run_meta,
-                                          self.steps_per_epoch)
+    state, start, metrics = _resume_point(
+        ckpts, self.workdir, abstract, self.run_meta, self.steps_per_epoch
+    )
     if state is None:
       state = jax.jit(self.init_fn, out_shardings=sharding.replicated(self.mesh))(
-          init_key(self.seed))
+          init_key(self.seed)
+      )
     if on_start is not None:
       on_start()
     if sharding.is_primary():
       _trim_metrics(self.workdir / layout.METRICS, start // self.steps_per_epoch)
     return state, start, metrics
 
-  def epochs(self, state: State, start: int, metrics: list, num_epochs: int, ckpts,
-             signals: preemption.Signals, checkpoint_every: int, epoch_end_fn, desc: str
-             ) -> State:
+  def epochs(
+      self,
+      state: State,
+      start: int,
+      metrics: list,
+      num_epochs: int,
+      ckpts,
+      signals: preemption.Signals,
+      checkpoint_every: int,
+      epoch_end_fn,
+      desc: str,
+  ) -> State:
     """Runs the epochs from global step `start` to `num_epochs`; `metrics` holds the step
     metrics of `start`'s epoch before `start`."""
     spe, primary = self.steps_per_epoch, sharding.is_primary()
     saved = (ckpts.latest_epoch or 0) * spe  # the global step of the newest checkpoint
-    with tqdm(total=num_epochs * spe, initial=min(start, num_epochs * spe), desc=desc,
-              unit="step", dynamic_ncols=True, disable=not primary) as bar:
+    with tqdm(
+        total=num_epochs * spe,
+        initial=min(start, num_epochs * spe),
+        desc=desc,
+        unit="step",
+        dynamic_ncols=True,
+        disable=not primary,
+    ) as bar:
       for epoch in range(start // spe, num_epochs):
         begin, first_step = time.perf_counter(), epoch * spe
         order, weight = _epoch_order(self.seed, epoch, self.m, self.batch_size)
@@ -262,18 +325,27 @@ class _Run:
             raise self._stop(signals, first_step + i, saved, state, metrics)
           batch = {k: v[order[i]] for k, v in self.data.items()}
           batch["weight"] = weight[i]
-          state, step_metrics = self.step(state, sharding.shard_batch(batch, self.mesh),
-                                          first_step + i)
+          state, step_metrics = self.step(
+              state, sharding.shard_batch(batch, self.mesh), first_step + i
+          )
           metrics.append(step_metrics)
           bar.update()
         summary = _epoch_summary(jax.device_get(metrics), weight, epoch + 1, first_step)
         metrics = []
         if epoch_end_fn is not None:
-          summary.update({k: _to_json_value(v)
-                          for k, v in epoch_end_fn(sharding.local_copy(state), epoch + 1).items()})
+          summary.update(
+              {
+                  k: _to_json_value(v)
+                  for k, v in epoch_end_fn(sharding.local_copy(state), epoch + 1).items()
+              }
+          )
         bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
-        line = {"epoch": epoch + 1, "step": first_step + spe,
-                "seconds": round(time.perf_counter() - begin, 4), **summary}
+        line = {
+            "epoch": epoch + 1,
+            "step": first_step + spe,
+            "seconds": round(time.perf_counter() - begin, 4),
+            **summary,
+        }
         if primary:
           atomic.append_jsonl(self.workdir / layout.METRICS, line)
         if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
@@ -282,8 +354,9 @@ class _Run:
           preemption.drop_stopped(self.workdir)
     return state
 
-  def _stop(self, signals: preemption.Signals, step: int, saved: int, state: State,
-            metrics: list) -> preemption.Stopped:
+  def _stop(
+      self, signals: preemption.Signals, step: int, saved: int, state: State, metrics: list
+  ) -> preemption.Stopped:
     """Saves the state before global `step` (unless a checkpoint holds it already) and
     returns the `Stopped` to raise."""
     spe = self.steps_per_epoch
@@ -291,8 +364,10 @@ class _Run:
       host_metrics = jax.device_get(metrics)
       _check_finite(host_metrics, step // spe + 1, step // spe * spe)
       preemption.save_stopped(self.workdir, step, state, self.run_meta, host_metrics)
-      where = f"saved global step {step} (epoch {step // spe + 1}, step {step % spe + 1}) " \
-              f"in {self.workdir / preemption.STOPPED}"
+      where = (
+          f"saved global step {step} (epoch {step // spe + 1}, step {step % spe + 1}) "
+          f"in {self.workdir / preemption.STOPPED}"
+      )
     else:
       where = f"the last checkpoint holds global step {step}"
     return signals.stopped(where)

@@ -32,8 +32,16 @@ from cvmdx_jax.train import baseline, loop
 def forward(graphdef, params, model_cfg: MixtureDensityConfig, inputs):
   """(means (B, K, T, 2) m, stds (B, K, T, 2) m, logits (B, K)) of a dict holding
   `train.baseline.INPUTS`."""
-  return mdn.mixture(graphdef, params, model_cfg, inputs["q"], inputs["delta"], inputs["ego"],
-                     inputs["v0"], inputs["psi0"])
+  return mdn.mixture(
+      graphdef,
+      params,
+      model_cfg,
+      inputs["q"],
+      inputs["delta"],
+      inputs["ego"],
+      inputs["v0"],
+      inputs["psi0"],
+  )
 
 
 def mdn_loss(means, stds, logits, future, weight, *, warm_up, cls_weight: float):
@@ -56,8 +64,10 @@ def mdn_loss(means, stds, logits, future, weight, *, warm_up, cls_weight: float)
   fixed = mdn.mode_log_densities(jax.lax.stop_gradient(means), stds, future)
   winner_nll = -jnp.take_along_axis(fixed, parts["winner"][:, None], axis=-1)[:, 0]
   warm = wta + mean(winner_nll) / coords
-  return (jnp.where(warm_up, warm, nll),
-          {"nll": nll, "wta_ade": parts["wta_ade"], "winner": parts["winner"]})
+  return (
+      jnp.where(warm_up, warm, nll),
+      {"nll": nll, "wta_ade": parts["wta_ade"], "winner": parts["winner"]},
+  )
 
 
 def evaluate(graphdef, params, model_cfg, data) -> dict:
@@ -68,38 +78,55 @@ def evaluate(graphdef, params, model_cfg, data) -> dict:
   closest mean, by ADE, is each mode)."""
   means, stds, logits = forward(graphdef, params, model_cfg, data)
   gt = data["future"]
-  loss, parts = mdn_loss(means, stds, logits, gt, jnp.ones(len(gt)), warm_up=False,
-                         cls_weight=0.0)
+  loss, parts = mdn_loss(means, stds, logits, gt, jnp.ones(len(gt)), warm_up=False, cls_weight=0.0)
   probs = jax.nn.softmax(logits, axis=-1)
   share = jnp.mean(jax.nn.one_hot(parts["winner"], model_cfg.num_hypotheses), axis=0)
-  return {"loss": loss, "nll": loss * gt.shape[-2] * gt.shape[-1], "wta_ade": parts["wta_ade"],
-          **baseline.point_readouts(means, logits, gt),
-          "std_5s": jnp.mean(jnp.sum(probs * jnp.mean(stds[:, :, -1], axis=-1), axis=-1)),
-          "head_share": share}
+  return {
+      "loss": loss,
+      "nll": loss * gt.shape[-2] * gt.shape[-1],
+      "wta_ade": parts["wta_ade"],
+      **baseline.point_readouts(means, logits, gt),
+      "std_5s": jnp.mean(jnp.sum(probs * jnp.mean(stds[:, :, -1], axis=-1), axis=-1)),
+      "head_share": share,
+  }
 
 
-def make_step_fn(graphdef, model_cfg, tx, config: MDNRunConfig, *, val: dict,
-                 steps_per_epoch: int):
+def make_step_fn(graphdef, model_cfg, tx, config: MDNRunConfig, *, val: dict, steps_per_epoch: int):
   """The pure train step (`train.baseline.selecting_step_fn`): `mdn_loss` (the warm-up's
   for the first `config.loss.warmup_epochs` epochs), AdamW and the val-chosen epoch."""
   warmup_steps = config.loss.warmup_epochs * steps_per_epoch
 
   def loss_fn(params, batch, step):
     means, stds, logits = forward(graphdef, params, model_cfg, batch)
-    loss, parts = mdn_loss(means, stds, logits, batch["future"], batch["weight"],
-                           warm_up=step < warmup_steps, cls_weight=config.loss.cls_weight)
+    loss, parts = mdn_loss(
+        means,
+        stds,
+        logits,
+        batch["future"],
+        batch["weight"],
+        warm_up=step < warmup_steps,
+        cls_weight=config.loss.cls_weight,
+    )
     return loss, {"nll": parts["nll"], "wta_ade": parts["wta_ade"]}
 
   return baseline.selecting_step_fn(
-      tx, loss_fn, lambda params, data: evaluate(graphdef, params, model_cfg, data),
-      val=val, steps_per_epoch=steps_per_epoch, select=config.train.select_metric)
+      tx,
+      loss_fn,
+      lambda params, data: evaluate(graphdef, params, model_cfg, data),
+      val=val,
+      steps_per_epoch=steps_per_epoch,
+      select=config.train.select_metric,
+  )
 
 
 def fingerprint(config: MDNRunConfig, dataset_id: str, tokens_meta: dict) -> dict:
   """What a checkpoint belongs to: the baseline's fingerprint (`fingerprints.baseline`:
   model, features, optimiser, dataset, tokeniser checkpoint) plus the kind and the loss."""
-  return {**fingerprints.baseline(config, dataset_id, tokens_meta), "kind": "mdn",
-          "loss": dataclasses.asdict(config.loss)}
+  return {
+      **fingerprints.baseline(config, dataset_id, tokens_meta),
+      "kind": "mdn",
+      "loss": dataclasses.asdict(config.loss),
+  }
 
 
 @locking.holds("workdir")
@@ -115,16 +142,25 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
   steps_per_epoch = -(-len(data["q"]) // config.train.batch_size)
   tx = baseline.optimizer(config.train, steps_per_epoch * config.train.num_epochs)
   graphdef = mdn.make_graphdef(model_cfg)
-  val_shapes = jax.eval_shape(lambda p: evaluate(graphdef, p, model_cfg, val),
-                              jax.eval_shape(lambda k: mdn.init(model_cfg, k)[1],
-                                             jax.random.key(0)))
+  val_shapes = jax.eval_shape(
+      lambda p: evaluate(graphdef, p, model_cfg, val),
+      jax.eval_shape(lambda k: mdn.init(model_cfg, k)[1], jax.random.key(0)),
+  )
 
   return loop.train(
-      workdir=workdir, init_fn=baseline.make_init_fn(model_cfg, tx, val_shapes, init=mdn.init),
-      step_fn=make_step_fn(graphdef, model_cfg, tx, config, val=val,
-                           steps_per_epoch=steps_per_epoch),
-      data=data, batch_size=config.train.batch_size, num_epochs=config.train.num_epochs,
-      seed=config.seed, fingerprint=fingerprint(config, dataset_id, meta),
-      checkpoint_every=config.train.checkpoint_every, keep=config.train.keep,
-      epoch_end_fn=baseline.val_summary, on_start=lambda: layout.write_run_config(workdir, config),
-      desc="mdn")
+      workdir=workdir,
+      init_fn=baseline.make_init_fn(model_cfg, tx, val_shapes, init=mdn.init),
+      step_fn=make_step_fn(
+          graphdef, model_cfg, tx, config, val=val, steps_per_epoch=steps_per_epoch
+      ),
+      data=data,
+      batch_size=config.train.batch_size,
+      num_epochs=config.train.num_epochs,
+      seed=config.seed,
+      fingerprint=fingerprint(config, dataset_id, meta),
+      checkpoint_every=config.train.checkpoint_every,
+      keep=config.train.keep,
+      epoch_end_fn=baseline.val_summary,
+      on_start=lambda: layout.write_run_config(workdir, config),
+      desc="mdn",
+  )

@@ -82,6 +82,7 @@ class Signals:
     the same increasing steps; with several processes they all get the same answer)."""
     if self._multi:
       from jax.experimental import multihost_utils  # pylint: disable=import-outside-toplevel
+
       return multihost_utils.reached_preemption_sync_point(global_step)
     return self.received is not None
 
@@ -96,18 +97,22 @@ class Signals:
     return Stopped(f"{what}; {where}", self.status)
 
 
-def save_stopped(workdir: Path, step: int, state: Any, run_meta: dict,
-                 metrics: list[dict[str, np.ndarray]]) -> None:
+def save_stopped(
+    workdir: Path, step: int, state: Any, run_meta: dict, metrics: list[dict[str, np.ndarray]]
+) -> None:
   """Saves the state before global `step` with the step metrics of its unfinished epoch
   under `<workdir>/preempted/<step>` (the newest only; all processes together)."""
-  meta = {"run": run_meta, "metrics": [{k: np.asarray(v).tolist() for k, v in m.items()}
-                                       for m in metrics]}
+  meta = {
+      "run": run_meta,
+      "metrics": [{k: np.asarray(v).tolist() for k, v in m.items()} for m in metrics],
+  }
   with checkpointing.Checkpoints(workdir / STOPPED, keep=1) as ckpts:
     ckpts.save(step, state, meta)
 
 
-def load_stopped(workdir: Path, abstract: Any, run_meta: dict, after: int
-                 ) -> tuple[Any, int, list[dict[str, np.ndarray]]] | None:
+def load_stopped(
+    workdir: Path, abstract: Any, run_meta: dict, after: int
+) -> tuple[Any, int, list[dict[str, np.ndarray]]] | None:
   """(state, global step, step metrics of its epoch) of `save_stopped`'s checkpoint when
   it is past global step `after`, else None.
 
@@ -119,8 +124,12 @@ def load_stopped(workdir: Path, abstract: Any, run_meta: dict, after: int
   if step is None or step <= after:
     return None
   state, saved = ckpts.load(step, abstract)
-  identity.check(saved.get("run"), run_meta, f"checkpoint {ckpts.root / str(step)}",
-                 checkpointing.CheckpointMismatchError)
+  identity.check(
+      saved.get("run"),
+      run_meta,
+      f"checkpoint {ckpts.root / str(step)}",
+      checkpointing.CheckpointMismatchError,
+  )
   return state, step, [{k: np.asarray(v) for k, v in m.items()} for m in saved["metrics"]]
 
 
@@ -138,10 +147,13 @@ def lost_peer(cause: str, checkpoints: Path) -> None:
   wait for the dead peer and then abort."""
   epoch = checkpointing.Checkpoints(checkpoints, writable=False).latest_epoch
   sys.stdout.flush()
-  print(f"{Path(sys.argv[0]).stem}: error: {cause}; another process of this "
-        f"{jax.process_count()}-process run probably died; the last complete checkpoint is "
-        f"epoch {epoch or 0} in {checkpoints}; rerun every process to resume", file=sys.stderr,
-        flush=True)
+  print(
+      f"{Path(sys.argv[0]).stem}: error: {cause}; another process of this "
+      f"{jax.process_count()}-process run probably died; the last complete checkpoint is "
+      f"epoch {epoch or 0} in {checkpoints}; rerun every process to resume",
+      file=sys.stderr,
+      flush=True,
+  )
   os._exit(PEER_LOST_STATUS)  # pylint: disable=protected-access
 
 
@@ -183,6 +195,7 @@ class PeerWatch:
 
   def _watch(self) -> None:
     from jax._src import distributed  # pylint: disable=import-outside-toplevel
+
     client, me = distributed.global_state.client, jax.process_index()
     seen: dict[int, tuple[str, float]] = {}  # peer -> (its last beat, when it changed)
     beat = 0
@@ -201,5 +214,6 @@ class PeerWatch:
         if seen.get(peer, (None,))[0] != value:
           seen[peer] = (value, now)
         elif now - seen[peer][1] > self.silent_s:
-          lost_peer(f"process {peer} sent no beat for {now - seen[peer][1]:.0f} s",
-                    self.checkpoints)
+          lost_peer(
+              f"process {peer} sent no beat for {now - seen[peer][1]:.0f} s", self.checkpoints
+          )

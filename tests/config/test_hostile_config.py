@@ -14,16 +14,22 @@ from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.config.sampling import MAX_SAMPLES, HypothesisConfig, SamplingConfig
 
 
-@pytest.mark.parametrize("kwargs, field, problem", [
-    ({"num_samples": 9.5}, "num_samples", "whole number"),
-    ({"num_samples": "9"}, "num_samples", "whole number"),
-    ({"num_samples": True}, "num_samples", "whole number"),
-    ({"steps": 2.5}, "steps", "whole number"),
-    ({"num_samples": MAX_SAMPLES + 1}, "num_samples", f"<= {MAX_SAMPLES}"),
-    ({"num_samples": 1_000_000}, "num_samples", f"<= {MAX_SAMPLES}"),
-    ({"num_samples": 2, "hypotheses": HypothesisConfig(c_max=3)}, "hypotheses.c_max",
-     "num_samples=2"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field, problem",
+    [
+        ({"num_samples": 9.5}, "num_samples", "whole number"),
+        ({"num_samples": "9"}, "num_samples", "whole number"),
+        ({"num_samples": True}, "num_samples", "whole number"),
+        ({"steps": 2.5}, "steps", "whole number"),
+        ({"num_samples": MAX_SAMPLES + 1}, "num_samples", f"<= {MAX_SAMPLES}"),
+        ({"num_samples": 1_000_000}, "num_samples", f"<= {MAX_SAMPLES}"),
+        (
+            {"num_samples": 2, "hypotheses": HypothesisConfig(c_max=3)},
+            "hypotheses.c_max",
+            "num_samples=2",
+        ),
+    ],
+)
 def test_sampling_config_refuses(kwargs, field, problem):
   with pytest.raises(ConfigFieldError) as info:
     SamplingConfig(**kwargs)
@@ -38,14 +44,17 @@ def test_sampling_config_takes_numpy_and_whole_float_integers():
   assert SamplingConfig(num_samples=MAX_SAMPLES, hypotheses=HypothesisConfig(c_max=3))
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    ({"num_heads": 3}, "num_heads"),  # 128 channels: 3 heads do not divide them
-    ({"base_channels": 96, "channel_mult": (1, 2, 3, 4), "num_heads": 5}, "num_heads"),
-    ({"attention_levels": (7,)}, "attention_levels"),
-    ({"channel_mult": (1, 2), "attention_levels": (2,)}, "attention_levels"),
-    ({"channel_mult": ()}, "channel_mult"),
-    ({"groups": 7}, "groups"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"num_heads": 3}, "num_heads"),  # 128 channels: 3 heads do not divide them
+        ({"base_channels": 96, "channel_mult": (1, 2, 3, 4), "num_heads": 5}, "num_heads"),
+        ({"attention_levels": (7,)}, "attention_levels"),
+        ({"channel_mult": (1, 2), "attention_levels": (2,)}, "attention_levels"),
+        ({"channel_mult": ()}, "channel_mult"),
+        ({"groups": 7}, "groups"),
+    ],
+)
 def test_unet_config_refuses(kwargs, field):
   with pytest.raises(ConfigFieldError) as info:
     UNetConfig(**kwargs)
@@ -54,12 +63,24 @@ def test_unet_config_refuses(kwargs, field):
 
 def test_unet_heads_need_only_divide_the_attended_levels():
   # 8 x (1, 3, 4): 24 channels at level 1 (no attention there), 32 at levels 2 (attended)
-  config = UNetConfig(base_channels=8, channel_mult=(1, 3, 4), attention_levels=(2,),
-                      num_heads=8, groups=8, padded_length=128)
+  config = UNetConfig(
+      base_channels=8,
+      channel_mult=(1, 3, 4),
+      attention_levels=(2,),
+      num_heads=8,
+      groups=8,
+      padded_length=128,
+  )
   assert config.num_heads == 8
   with pytest.raises(ConfigFieldError, match="num_heads"):
-    UNetConfig(base_channels=8, channel_mult=(1, 3, 4), attention_levels=(1,),
-               num_heads=16, groups=8, padded_length=128)
+    UNetConfig(
+        base_channels=8,
+        channel_mult=(1, 3, 4),
+        attention_levels=(1,),
+        num_heads=16,
+        groups=8,
+        padded_length=128,
+    )
 
 
 def test_a_one_step_diffusion_is_refused():
@@ -69,11 +90,14 @@ def test_a_one_step_diffusion_is_refused():
   assert DenoiserConfig(num_steps=2).num_steps == 2
 
 
-@pytest.mark.parametrize("override, field", [
-    (("model", "num_heads", 3), "model.num_heads"),
-    (("model", "attention_levels", (7,)), "model.attention_levels"),
-    (("diffusion", "num_steps", 1), "diffusion.num_steps"),
-])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        (("model", "num_heads", 3), "model.num_heads"),
+        (("model", "attention_levels", (7,)), "model.attention_levels"),
+        (("diffusion", "num_steps", 1), "diffusion.num_steps"),
+    ],
+)
 def test_the_run_config_names_the_dotted_field(override, field):
   config = diffusion_config.get_config("tiny")
   section, name, value = override

@@ -50,42 +50,87 @@ def lane_of(y):
 def write_recording(directory: Path, recording_id: int = 1, vehicles=(1, 2, 3, 4, 5)) -> None:
   """Writes the recording described in the module docstring (only `vehicles`)."""
   rows, meta = [], []
-  neighbours = {1: {"precedingId": 2, "rightFollowingId": 5}, 2: {"followingId": 1},
-                3: {"leftAlongsideId": 4}, 4: {"rightAlongsideId": 3}}
+  neighbours = {
+      1: {"precedingId": 2, "rightFollowingId": 5},
+      2: {"followingId": 1},
+      3: {"leftAlongsideId": 4},
+      4: {"rightAlongsideId": 3},
+  }
   for vid, (frames, x, y, direction) in vehicle_paths().items():
     if vid not in vehicles:
       continue
     vx = np.gradient(x, DT)
     vy = np.gradient(y, DT)
-    table = {"frame": frames, "id": vid, "x": x - 2.0, "y": y - 1.0, "width": 4.0,
-             "height": 2.0, "xVelocity": vx, "yVelocity": vy,
-             # The lane-change ramps step the lateral speed within a frame; their unused
-             # acceleration column is clipped into highd's physical range.
-             "xAcceleration": np.gradient(vx, DT),
-             "yAcceleration": np.clip(np.gradient(vy, DT), -2.0, 2.0),
-             "frontSightDistance": 100.0, "backSightDistance": 100.0, "dhw": 0.0, "thw": 0.0,
-             "ttc": 0.0, "precedingXVelocity": 0.0, "laneId": lane_of(y)}
+    table = {
+        "frame": frames,
+        "id": vid,
+        "x": x - 2.0,
+        "y": y - 1.0,
+        "width": 4.0,
+        "height": 2.0,
+        "xVelocity": vx,
+        "yVelocity": vy,
+        # The lane-change ramps step the lateral speed within a frame; their unused
+        # acceleration column is clipped into highd's physical range.
+        "xAcceleration": np.gradient(vx, DT),
+        "yAcceleration": np.clip(np.gradient(vy, DT), -2.0, 2.0),
+        "frontSightDistance": 100.0,
+        "backSightDistance": 100.0,
+        "dhw": 0.0,
+        "thw": 0.0,
+        "ttc": 0.0,
+        "precedingXVelocity": 0.0,
+        "laneId": lane_of(y),
+    }
     for column in highd.NEIGHBOUR_COLUMNS:
       other = neighbours.get(vid, {}).get(column, 0)
       table[column] = other if other in vehicles else 0
     rows.append(pd.DataFrame(table))
-    meta.append({"id": vid, "width": 4.0, "height": 2.0, "initialFrame": frames[0],
-                 "finalFrame": frames[-1], "numFrames": len(frames), "class": "Car",
-                 "drivingDirection": direction, "traveledDistance": abs(x[-1] - x[0]),
-                 "minXVelocity": np.abs(vx).min(), "maxXVelocity": np.abs(vx).max(),
-                 "meanXVelocity": np.abs(vx).mean(), "minDHW": -1, "minTHW": -1,
-                 "minTTC": -1, "numLaneChanges": int(np.count_nonzero(np.diff(lane_of(y))))})
+    meta.append(
+        {
+            "id": vid,
+            "width": 4.0,
+            "height": 2.0,
+            "initialFrame": frames[0],
+            "finalFrame": frames[-1],
+            "numFrames": len(frames),
+            "class": "Car",
+            "drivingDirection": direction,
+            "traveledDistance": abs(x[-1] - x[0]),
+            "minXVelocity": np.abs(vx).min(),
+            "maxXVelocity": np.abs(vx).max(),
+            "meanXVelocity": np.abs(vx).mean(),
+            "minDHW": -1,
+            "minTHW": -1,
+            "minTTC": -1,
+            "numLaneChanges": int(np.count_nonzero(np.diff(lane_of(y)))),
+        }
+    )
   paths = highd.recording_paths(directory, recording_id)
   tracks = pd.concat(rows)[list(highd.TRACKS_COLUMNS)]
   tracks.to_csv(paths["tracks"], index=False, float_format="%.2f")
   pd.DataFrame(meta).to_csv(paths["tracksMeta"], index=False, float_format="%.2f")
-  pd.DataFrame([{
-      "id": recording_id, "frameRate": 25, "locationId": 1, "speedLimit": -1,
-      "month": "09.2017", "weekDay": "Tue", "startTime": "08:38", "duration": 12.0,
-      "totalDrivenDistance": 0.0, "totalDrivenTime": 0.0, "numVehicles": 5, "numCars": 5,
-      "numTrucks": 0, "upperLaneMarkings": ";".join(map(str, UPPER)),
-      "lowerLaneMarkings": ";".join(map(str, LOWER))}]).to_csv(
-          paths["recordingMeta"], index=False)
+  pd.DataFrame(
+      [
+          {
+              "id": recording_id,
+              "frameRate": 25,
+              "locationId": 1,
+              "speedLimit": -1,
+              "month": "09.2017",
+              "weekDay": "Tue",
+              "startTime": "08:38",
+              "duration": 12.0,
+              "totalDrivenDistance": 0.0,
+              "totalDrivenTime": 0.0,
+              "numVehicles": 5,
+              "numCars": 5,
+              "numTrucks": 0,
+              "upperLaneMarkings": ";".join(map(str, UPPER)),
+              "lowerLaneMarkings": ";".join(map(str, LOWER)),
+          }
+      ]
+  ).to_csv(paths["recordingMeta"], index=False)
 
 
 @pytest.fixture
@@ -109,4 +154,5 @@ def highd_config(highd_dir):
     config.splits.train, config.splits.val, config.splits.test = (1,), (3,), (2,)
     config.extraction.lc_offsets_s = (0.5, 1.0)
     return config
+
   return make

@@ -59,7 +59,7 @@ def test_truncated_file(highd_dir):
   data = path.read_bytes()
   path.write_bytes(data[:-40])  # the last row loses its last fields
   last = data[:-40].decode().splitlines()
-  cut = highd.TRACKS_COLUMNS[len(last[-1].split(",")):]
+  cut = highd.TRACKS_COLUMNS[len(last[-1].split(",")) :]
   missing = [c for c in cut if c in highd.READ_COLUMNS["tracks"]][0]  # first one read
   with warnings.catch_warnings():
     warnings.simplefilter("error")  # no warning about the unread columns before the error
@@ -88,15 +88,18 @@ def test_inconsistent_frames(highd_dir):
 # Lines of the conftest recording: tracks 2-301 vehicle 1 (direction 2), 602-901 vehicle 3
 # (direction 1); tracksMeta line k + 1 = vehicle k. Fields: tracks x 2, width 4,
 # xVelocity 6, laneId 24; tracksMeta height 2, finalFrame 4, drivingDirection 7.
-@pytest.mark.parametrize("name, line, field, value, column", [
-    ("01_tracks.csv", 7, 2, "1e30", "x"),
-    ("01_tracks.csv", 7, 6, "1e40", "xVelocity"),
-    ("01_tracks.csv", 8, 4, "-4.00", "width"),
-    ("01_tracks.csv", 9, 24, "6.5", "laneId"),
-    ("01_tracks.csv", 11, 1, "1e40", "id"),
-    ("01_tracksMeta.csv", 2, 4, "299", "finalFrame"),
-    ("01_tracksMeta.csv", 3, 0, "1", "id"),  # duplicate id
-])
+@pytest.mark.parametrize(
+    "name, line, field, value, column",
+    [
+        ("01_tracks.csv", 7, 2, "1e30", "x"),
+        ("01_tracks.csv", 7, 6, "1e40", "xVelocity"),
+        ("01_tracks.csv", 8, 4, "-4.00", "width"),
+        ("01_tracks.csv", 9, 24, "6.5", "laneId"),
+        ("01_tracks.csv", 11, 1, "1e40", "id"),
+        ("01_tracksMeta.csv", 2, 4, "299", "finalFrame"),
+        ("01_tracksMeta.csv", 3, 0, "1", "id"),  # duplicate id
+    ],
+)
 def test_values_outside_physical_ranges(highd_dir, name, line, field, value, column):
   _edit_line(highd_dir / name, line, field, value)
   _expect(highd_dir, name, line, column)
@@ -107,8 +110,9 @@ def _expect_warning(highd_dir, name, row, column):
   clean = highd.read_recording(highd_dir, 2)  # the same content as recording 1
   with pytest.warns(DataWarning) as record:
     rec = highd.read_recording(highd_dir, 1)
-  assert [(Path(w.message.path).name, w.message.row, w.message.column)
-          for w in record] == [(name, row, column)]
+  assert [(Path(w.message.path).name, w.message.row, w.message.column) for w in record] == [
+      (name, row, column)
+  ]
   assert name in str(record[0].message) and "not read" in str(record[0].message)
   for field in ("track_id", "frame", "lane", "direction", "pos", "vel", "neighbours"):
     np.testing.assert_array_equal(getattr(rec, field), getattr(clean, field))
@@ -116,19 +120,21 @@ def _expect_warning(highd_dir, name, row, column):
 
 # Fields: tracks yAcceleration 9, dhw 12, ttc 14; tracksMeta width 1, height 2, class 6,
 # traveledDistance 8; recordingMeta locationId 2, month 4.
-@pytest.mark.parametrize("name, line, field, value, column", [
-    ("01_tracks.csv", 10, 14, "2.7e14", "ttc"),  # another exporter's "no leader"
-    ("01_tracks.csv", 10, 14, "inf", "ttc"),
-    ("01_tracks.csv", 11, 12, "abc", "dhw"),
-    ("01_tracks.csv", 10, 9, "45.0", "yAcceleration"),
-    ("01_tracksMeta.csv", 3, 2, "0.00", "height"),
-    ("01_tracksMeta.csv", 4, 1, "", "width"),
-    ("01_tracksMeta.csv", 5, 8, "1e300", "traveledDistance"),
-    ("01_tracksMeta.csv", 2, 6, "", "class"),
-    ("01_recordingMeta.csv", 2, 4, "", "month"),
-])
-def test_bad_cell_in_an_unread_column_is_a_warning(highd_dir, name, line, field, value,
-                                                   column):
+@pytest.mark.parametrize(
+    "name, line, field, value, column",
+    [
+        ("01_tracks.csv", 10, 14, "2.7e14", "ttc"),  # another exporter's "no leader"
+        ("01_tracks.csv", 10, 14, "inf", "ttc"),
+        ("01_tracks.csv", 11, 12, "abc", "dhw"),
+        ("01_tracks.csv", 10, 9, "45.0", "yAcceleration"),
+        ("01_tracksMeta.csv", 3, 2, "0.00", "height"),
+        ("01_tracksMeta.csv", 4, 1, "", "width"),
+        ("01_tracksMeta.csv", 5, 8, "1e300", "traveledDistance"),
+        ("01_tracksMeta.csv", 2, 6, "", "class"),
+        ("01_recordingMeta.csv", 2, 4, "", "month"),
+    ],
+)
+def test_bad_cell_in_an_unread_column_is_a_warning(highd_dir, name, line, field, value, column):
   _edit_line(highd_dir / name, line, field, value)
   _expect_warning(highd_dir, name, line, column)
 
@@ -191,13 +197,14 @@ def test_recording_without_lane_change(tmp_path):
     highd.load_scenarios(tmp_path, [1], extract.ExtractionConfig(balance=True))
 
 
-@pytest.mark.parametrize("v0, message", [(-5.0, "'v0' is negative"),
-                                         (np.nan, "'v0' holds NaN")])
+@pytest.mark.parametrize("v0, message", [(-5.0, "'v0' is negative"), (np.nan, "'v0' holds NaN")])
 def test_negative_or_nonfinite_v0_refused(v0, message):
-  from cvmdx_jax.inference import predictor as predict
   from cvmdx_jax.data import scenarios as scenarios_lib
-  arrays = {name: np.zeros((3, *shape), dtype) for name, (shape, dtype)
-            in scenarios_lib.FIELDS.items()}
+  from cvmdx_jax.inference import predictor as predict
+
+  arrays = {
+      name: np.zeros((3, *shape), dtype) for name, (shape, dtype) in scenarios_lib.FIELDS.items()
+  }
   arrays["v0"][2] = v0
   scen = scenarios_lib.Scenarios(**arrays)
   with pytest.raises(ValueError, match=f"{message}.*scenario 2"):
@@ -227,11 +234,22 @@ def test_make_dataset_exits_nonzero_without_cache(highd_dir, tmp_path):
   _edit_line(highd_dir / "01_tracks.csv", 9, 3, "")
   out = tmp_path / "out"
   result = subprocess.run(
-      [sys.executable, "experiments/make_dataset.py", "--config=configs/dataset.py:tiny",
-       f"--data_dir={out}", "--config.source=highd", f"--config.highd_dir={highd_dir}",
-       "--config.splits.train=(1,)", "--config.splits.val=(3,)", "--config.splits.test=(2,)"],
-      cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": pythonpath(),
-                                                     "JAX_PLATFORMS": "cpu"})
+      [
+          sys.executable,
+          "experiments/make_dataset.py",
+          "--config=configs/dataset.py:tiny",
+          f"--data_dir={out}",
+          "--config.source=highd",
+          f"--config.highd_dir={highd_dir}",
+          "--config.splits.train=(1,)",
+          "--config.splits.val=(3,)",
+          "--config.splits.test=(2,)",
+      ],
+      cwd=ROOT,
+      capture_output=True,
+      text=True,
+      env={"PYTHONPATH": pythonpath(), "JAX_PLATFORMS": "cpu"},
+  )
   assert result.returncode != 0
   assert "01_tracks.csv, row 9, column 'y'" in result.stderr
   assert not (out / "cache").exists()
@@ -246,6 +264,7 @@ def test_recording_names_with_any_digit_count(tmp_path):
   """1_*.csv and 002_*.csv are recordings 1 and 2, read from their own files; a sibling
   missing under that prefix is named as the user would have written it."""
   from configs import dataset as dataset_config
+
   for recording_id, prefix in ((1, "1"), (2, "002"), (3, "03")):
     write_recording(tmp_path, recording_id)
     _rename(tmp_path, recording_id, prefix)
@@ -261,17 +280,22 @@ def test_recording_names_with_any_digit_count(tmp_path):
   config.splits.train, config.splits.val, config.splits.test = (1,), (2,), (3,)
   splits = dataset.build(config, tmp_path / "out")
   assert {name: set(np.unique(s.recording_id)) for name, s in splits.items()} == {
-      "train": {1}, "val": {2}, "test": {3}}
+      "train": {1},
+      "val": {2},
+      "test": {3},
+  }
   (tmp_path / "002_recordingMeta.csv").rename(tmp_path / "02_recordingMeta.csv")
   with pytest.raises(DataError, match="002_recordingMeta.csv: file not found"):
     highd.read_recording(tmp_path, 2)
 
 
-def test_two_tracks_files_of_one_recording_are_refused_before_reading(highd_dir, tmp_path,
-                                                                      highd_config):
+def test_two_tracks_files_of_one_recording_are_refused_before_reading(
+    highd_dir, tmp_path, highd_config
+):
   (highd_dir / "1_tracks.csv").write_bytes((highd_dir / "01_tracks.csv").read_bytes())
-  with pytest.raises(DataError, match=r"recording 1 has 2 tracks files \(01_tracks.csv, "
-                     r"1_tracks.csv\)"):
+  with pytest.raises(
+      DataError, match=r"recording 1 has 2 tracks files \(01_tracks.csv, " r"1_tracks.csv\)"
+  ):
     highd.read_recording(highd_dir, 1)
   with pytest.raises(DataError, match="recording 1 has 2 tracks files"):
     dataset.build(highd_config(), tmp_path / "out")

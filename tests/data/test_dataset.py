@@ -44,8 +44,9 @@ def test_load_split_errors(highd_config, highd_dir, tmp_path):
   with pytest.raises(DataError, match="no dataset cache"):
     dataset.load_split(out, "train")
   dataset.build(highd_config(), out)
-  with pytest.raises(DataError,
-                     match=r"unknown split 'test_ood', available: \['test', 'train', 'val'\]"):
+  with pytest.raises(
+      DataError, match=r"unknown split 'test_ood', available: \['test', 'train', 'val'\]"
+  ):
     dataset.load_split(out, "test_ood")
   path = out / "cache" / "test.npz"
   path.write_bytes(path.read_bytes()[:-10])  # interrupted write
@@ -89,8 +90,11 @@ def test_id_independent_of_path_spelling(highd_config, highd_dir, tmp_path, monk
   (tmp_path / "link").symlink_to(highd_dir, target_is_directory=True)
   (tmp_path / "out_link").symlink_to(out, target_is_directory=True)
   monkeypatch.chdir(tmp_path)
-  for source, data_dir in [(os.path.relpath(highd_dir, tmp_path), "out"),
-                           ("link", "out_link"), (str(tmp_path / "link"), "./out/../out")]:
+  for source, data_dir in [
+      (os.path.relpath(highd_dir, tmp_path), "out"),
+      ("link", "out_link"),
+      (str(tmp_path / "link"), "./out/../out"),
+  ]:
     config = highd_config()
     config.highd_dir = source
     dataset.build(config, data_dir)
@@ -98,20 +102,27 @@ def test_id_independent_of_path_spelling(highd_config, highd_dir, tmp_path, monk
   assert (out / "cache" / "train.npz").stat().st_mtime_ns == stamp
 
 
-@pytest.mark.parametrize("edit", [
-    lambda m: [],
-    lambda m: {},
-    lambda m: "metadata",
-    lambda m: {**m, "sources": [s[:2] for s in m["sources"]]},  # no sha256
-    lambda m: {**m, "splits": {k: {x: y for x, y in v.items() if x != "count"}
-                               for k, v in m["splits"].items()}},
-    lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "count": "12"}}},
-    lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "file": "../../x.npz"}}},
-    lambda m: {**m, "splits": []},
-    lambda m: {**m, "settings": None},
-    lambda m: {**m, "format_version": 1},
-    lambda m: {**m, "sources": {"a": 1}},
-])
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda m: [],
+        lambda m: {},
+        lambda m: "metadata",
+        lambda m: {**m, "sources": [s[:2] for s in m["sources"]]},  # no sha256
+        lambda m: {
+            **m,
+            "splits": {
+                k: {x: y for x, y in v.items() if x != "count"} for k, v in m["splits"].items()
+            },
+        },
+        lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "count": "12"}}},
+        lambda m: {**m, "splits": {"train": {**m["splits"]["train"], "file": "../../x.npz"}}},
+        lambda m: {**m, "splits": []},
+        lambda m: {**m, "settings": None},
+        lambda m: {**m, "format_version": 1},
+        lambda m: {**m, "sources": {"a": 1}},
+    ],
+)
 def test_malformed_metadata_means_rebuild(highd_config, highd_dir, tmp_path, edit):
   out = tmp_path / "out"
   dataset.build(highd_config(), out)

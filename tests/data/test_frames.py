@@ -27,13 +27,17 @@ def test_observation_at_a_readers_window_equals_its_scenario(tmp_path, rec):
 
 def test_origin_and_futures_are_the_csv_centres(tmp_path, rec):
   tracks = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracks"])
-  centre = {(i, f): (x + 2.0, y + 1.0) for i, f, x, y in
-            tracks[["id", "frame", "x", "y"]].itertuples(index=False)}
-  rows = np.array([frames.row_of(rec, 1, 100), frames.row_of(rec, 3, 200),
-                   frames.row_of(rec, 4, 250)])
+  centre = {
+      (i, f): (x + 2.0, y + 1.0)
+      for i, f, x, y in tracks[["id", "frame", "x", "y"]].itertuples(index=False)
+  }
+  rows = np.array(
+      [frames.row_of(rec, 1, 100), frames.row_of(rec, 3, 200), frames.row_of(rec, 4, 250)]
+  )
   observed = frames.observed(rec, rows)
-  np.testing.assert_allclose(observed["origin"], [centre[(1, 100)], centre[(3, 200)],
-                                               centre[(4, 250)]], atol=1e-9)
+  np.testing.assert_allclose(
+      observed["origin"], [centre[(1, 100)], centre[(3, 200)], centre[(4, 250)]], atol=1e-9
+  )
   np.testing.assert_array_equal(observed["direction"], [2, 1, 1])
   future, known = frames.futures(rec, rows)
   np.testing.assert_array_equal(known, [True, False, False])  # 300 - 200 < 125 frames
@@ -46,17 +50,37 @@ def test_observable_rows_need_three_seconds_of_history(rec):
   rows = frames.observable_rows(rec, [74, 75, 150, 174, 175])
   got = list(zip(rec.frame[rows], rec.track_id[rows]))
   # tracks 1-4 start at frame 1 (75 frames of history at 75), track 5 at frame 100
-  assert got == [(75, 1), (75, 2), (75, 3), (75, 4), (150, 1), (150, 2), (150, 3),
-                 (150, 4), (174, 1), (174, 2), (174, 3), (174, 4), (174, 5), (175, 1),
-                 (175, 2), (175, 3), (175, 4), (175, 5)]
+  assert got == [
+      (75, 1),
+      (75, 2),
+      (75, 3),
+      (75, 4),
+      (150, 1),
+      (150, 2),
+      (150, 3),
+      (150, 4),
+      (174, 1),
+      (174, 2),
+      (174, 3),
+      (174, 4),
+      (174, 5),
+      (175, 1),
+      (175, 2),
+      (175, 3),
+      (175, 4),
+      (175, 5),
+  ]
 
 
-@pytest.mark.parametrize("track, frame, match", [
-    (1, 301, "frame 301 outside the recording"),
-    (9, 100, "track 9 does not exist"),
-    (5, 50, "track 5 is not in frame 50"),
-    (5, 150, "track 5 has 51 frames of history at frame 150, needs 75"),
-])
+@pytest.mark.parametrize(
+    "track, frame, match",
+    [
+        (1, 301, "frame 301 outside the recording"),
+        (9, 100, "track 9 does not exist"),
+        (5, 50, "track 5 is not in frame 50"),
+        (5, 150, "track 5 has 51 frames of history at frame 150, needs 75"),
+    ],
+)
 def test_bad_track_or_frame_names_it(rec, track, frame, match):
   with pytest.raises(DataError, match=match):
     frames.row_of(rec, track, frame)

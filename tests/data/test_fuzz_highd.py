@@ -23,21 +23,62 @@ from cvmdx_jax.data.errors import DataError, DataWarning
 from tests.data.conftest import write_recording
 
 ANY = "any"
-COLUMNS = {"tracks": highd.TRACKS_COLUMNS, "tracksMeta": highd.TRACKS_META_COLUMNS,
-           "recordingMeta": highd.RECORDING_META_COLUMNS}
+COLUMNS = {
+    "tracks": highd.TRACKS_COLUMNS,
+    "tracksMeta": highd.TRACKS_META_COLUMNS,
+    "recordingMeta": highd.RECORDING_META_COLUMNS,
+}
 UNUSED_TEXT = ("class", "month", "weekDay", "startTime")
 NA_TEXT = ("", "nan", "NaN", "NA", "null")  # what pandas reads as a missing cell
 # Index of the last column the reader uses, per file (the later ones it only warns about).
-LAST_READ = {kind: max(COLUMNS[kind].index(c) for c in highd.READ_COLUMNS[kind])
-             for kind in COLUMNS}
+LAST_READ = {
+    kind: max(COLUMNS[kind].index(c) for c in highd.READ_COLUMNS[kind]) for kind in COLUMNS
+}
 MARKINGS = ("upperLaneMarkings", "lowerLaneMarkings")
 NAN_LIKE = ["", "nan", "NaN", "NA", "null", "inf", "-inf", " "]
-NOT_NUMBERS = ["abc", "1.2.3", "--1", "x1", "#", "e5", "1e", "TRUE", "0x1A", "1_000", "½",
-               "\U0001d7d9"]
-ABSURD = ["1e30", "-1e30", "1e40", "-1e40", "1e308", "1e309", "-1e9", "2147483648",
-          "9.999e15", "-0", "0", "-1", "1e-30", "123456789", "0.5"]
-BAD_MARKINGS = ["", "abc", "8.0;;12.0", "12.0;8.0", "8.0", "8.0;12.0;", "1e40;2e40", "nan;1",
-                "8.0;8.0", "inf;1e3"]
+NOT_NUMBERS = [
+    "abc",
+    "1.2.3",
+    "--1",
+    "x1",
+    "#",
+    "e5",
+    "1e",
+    "TRUE",
+    "0x1A",
+    "1_000",
+    "½",
+    "\U0001d7d9",
+]
+ABSURD = [
+    "1e30",
+    "-1e30",
+    "1e40",
+    "-1e40",
+    "1e308",
+    "1e309",
+    "-1e9",
+    "2147483648",
+    "9.999e15",
+    "-0",
+    "0",
+    "-1",
+    "1e-30",
+    "123456789",
+    "0.5",
+]
+BAD_MARKINGS = [
+    "",
+    "abc",
+    "8.0;;12.0",
+    "12.0;8.0",
+    "8.0",
+    "8.0;12.0;",
+    "1e40;2e40",
+    "nan;1",
+    "8.0;8.0",
+    "inf;1e3",
+]
 
 
 @dataclasses.dataclass
@@ -88,15 +129,35 @@ def _cut_must_fail(kind: str, partial_line: str) -> bool:
   """Whether a data line of `kind` cut to `partial_line` lost a column the reader uses (a
   used column cut inside its value may still read, as another valid number)."""
   field = partial_line.count(",")
-  return LAST_READ[kind] > field or (LAST_READ[kind] == field
-                                     and not partial_line.split(",")[-1])
+  return LAST_READ[kind] > field or (LAST_READ[kind] == field and not partial_line.split(",")[-1])
 
 
 def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
-  what = _pick(rng, ["missing", "empty", "header_only", "drop_column", "permute", "bom_crlf",
-                     "nan", "text", "truncate_line", "cut_file", "duplicate", "delete",
-                     "swap", "unknown_id", "absurd", "markings", "direction", "bytes",
-                     "drop_header", "rename_column"])
+  what = _pick(
+      rng,
+      [
+          "missing",
+          "empty",
+          "header_only",
+          "drop_column",
+          "permute",
+          "bom_crlf",
+          "nan",
+          "text",
+          "truncate_line",
+          "cut_file",
+          "duplicate",
+          "delete",
+          "swap",
+          "unknown_id",
+          "absurd",
+          "markings",
+          "direction",
+          "bytes",
+          "drop_header",
+          "rename_column",
+      ],
+  )
   kind = _pick(rng, tuple(COLUMNS))
   data = clean[kind]
   lines = _split(data)
@@ -116,10 +177,11 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
       return Case(what, files, fail=False, same=True)
     field = int(rng.integers(n))
     if what == "drop_column":
-      table = [r[:field] + r[field + 1:] for r in table]
+      table = [r[:field] + r[field + 1 :] for r in table]
     else:
-      table[0][field] = _pick(rng, [table[0][field] + "_", table[0][field].upper(), "",
-                                    table[0][(field + 1) % n]])
+      table[0][field] = _pick(
+          rng, [table[0][field] + "_", table[0][field].upper(), "", table[0][(field + 1) % n]]
+      )
     files[kind] = _join([",".join(r) for r in table] + [""])
     return Case(what, files, kind=kind, row=1, column=COLUMNS[kind][field])
   if what == "drop_header":
@@ -137,12 +199,17 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
       return Case(what, files, fail=False, same=True, warns=warns)
     must = not _is_number(value) or abs(float(value)) > highd.ABSURD
     if column not in highd.READ_COLUMNS[kind]:  # read anyway, with a warning
-      return Case(what, files, fail=False, same=True,
-                  warns=(kind, line, column) if must else None)
+      return Case(what, files, fail=False, same=True, warns=(kind, line, column) if must else None)
     if column in MARKINGS:  # a single number is not a list of markings
       must = True
-    return Case(what, files, fail=must, kind=kind if must else None,
-                row=line if must else ANY, column=column if must else ANY)
+    return Case(
+        what,
+        files,
+        fail=must,
+        kind=kind if must else None,
+        row=line if must else ANY,
+        column=column if must else ANY,
+    )
   if what == "truncate_line":
     line = int(rng.integers(2, len(lines)))
     text = lines[line - 1]
@@ -150,8 +217,9 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     lines[line - 1] = text[:cut]
     files[kind] = _join(lines)
     must = _cut_must_fail(kind, text[:cut])
-    return Case(what, files, fail=must, kind=kind, row=line,
-                same=LAST_READ[kind] < text[:cut].count(","))
+    return Case(
+        what, files, fail=must, kind=kind, row=line, same=LAST_READ[kind] < text[:cut].count(",")
+    )
   if what == "cut_file":
     header_end = data.index(b"\n") + 1
     cut = int(rng.integers(header_end + 1, len(data) - 1))
@@ -190,8 +258,9 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     cells = lines[1].split(",")
     cells[COLUMNS["recordingMeta"].index(column)] = _pick(rng, BAD_MARKINGS)
     lines[1] = ",".join(cells)
-    return Case(what, {**clean, "recordingMeta": _join(lines)}, kind="recordingMeta", row=2,
-                column=column)
+    return Case(
+        what, {**clean, "recordingMeta": _join(lines)}, kind="recordingMeta", row=2, column=column
+    )
   if what == "direction":
     lines = _split(clean["tracksMeta"])
     line = int(rng.integers(2, len(lines)))
@@ -199,12 +268,11 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     field = COLUMNS["tracksMeta"].index("drivingDirection")
     cells[field] = "1" if cells[field] == "2" else "2"
     lines[line - 1] = ",".join(cells)
-    return Case(what, {**clean, "tracksMeta": _join(lines)}, kind="tracks",
-                column="xVelocity")
+    return Case(what, {**clean, "tracksMeta": _join(lines)}, kind="tracks", column="xVelocity")
   # "bytes": one byte replaced by a random byte (often not UTF-8, a quote or a separator).
   at = int(rng.integers(len(data)))
   byte = bytes([int(rng.integers(256))])
-  return Case(what, {**clean, kind: data[:at] + byte + data[at + 1:]}, fail=False)
+  return Case(what, {**clean, kind: data[:at] + byte + data[at + 1 :]}, fail=False)
 
 
 def _write(directory: Path, files: dict) -> None:
@@ -215,8 +283,11 @@ def _write(directory: Path, files: dict) -> None:
 
 
 def _same(a: highd.Recording, b: highd.Recording) -> bool:
-  return all(np.array_equal(getattr(a, f.name), getattr(b, f.name))
-             for f in dataclasses.fields(highd.Recording) if f.name != "path")
+  return all(
+      np.array_equal(getattr(a, f.name), getattr(b, f.name))
+      for f in dataclasses.fields(highd.Recording)
+      if f.name != "path"
+  )
 
 
 def _sane(rec: highd.Recording) -> None:
@@ -249,9 +320,13 @@ def _check(case: Case, directory: Path, clean_rec) -> str:
   assert not case.fail, f"{case.name}: read without error"
   if case.warns is not None:
     kind, row, column = case.warns
-    assert any(isinstance(w.message, DataWarning) and w.message.row == row
-               and w.message.column == column
-               and Path(w.message.path).name == f"01_{kind}.csv" for w in record), case.name
+    assert any(
+        isinstance(w.message, DataWarning)
+        and w.message.row == row
+        and w.message.column == column
+        and Path(w.message.path).name == f"01_{kind}.csv"
+        for w in record
+    ), case.name
   _sane(rec)
   if case.same:
     assert _same(rec, clean_rec), case.name
@@ -260,9 +335,12 @@ def _check(case: Case, directory: Path, clean_rec) -> str:
 
 def _fake_cache(out: Path) -> dict:
   """A valid cache of other settings (so `build` must try to rebuild); its bytes."""
-  scen = scenarios_lib.from_arrays(**{
-      name: np.zeros((3, *shape), dtype) for name, (shape, dtype)
-      in scenarios_lib.FIELDS.items()})
+  scen = scenarios_lib.from_arrays(
+      **{
+          name: np.zeros((3, *shape), dtype)
+          for name, (shape, dtype) in scenarios_lib.FIELDS.items()
+      }
+  )
   cache.write(out / "cache", {"train": scen, "test": scen}, {"other": True}, [])
   return {p.name: p.read_bytes() for p in (out / "cache").iterdir()}
 
@@ -295,6 +373,7 @@ def run_fuzz(num_cases: int, seed: int, tmp_path: Path, config) -> dict:
 
 def _config(source: Path):
   from configs import dataset as dataset_config
+
   config = dataset_config.get_config("tiny")
   config.source, config.highd_dir = "highd", str(source)
   config.splits.train, config.splits.test = (1,), (2,)

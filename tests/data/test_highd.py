@@ -75,4 +75,3 @@ def test_balance_equalises_classes(highd_dir):
   assert counts[0] == counts[1] == counts[2] == 6  # 3 offsets x 2 recordings per class
   again = highd.load_scenarios(highd_dir, [1, 2], cfg)
   np.testing.assert_array_equal(s.frame, again.frame)
-

@@ -39,8 +39,9 @@ def _extra_columns(path: Path, count: int) -> None:
   lines = path.read_text().splitlines()
   extra_names = "".join(f",extra{i}" for i in range(count))
   extra_cells = ",7" * count
-  path.write_text("\n".join([lines[0] + extra_names] + [l + extra_cells for l in lines[1:]])
-                  + "\n")
+  path.write_text(
+      "\n".join([lines[0] + extra_names] + [row + extra_cells for row in lines[1:]]) + "\n"
+  )
 
 
 def test_extra_header_columns_are_skipped_not_stored(highd_dir):
@@ -132,9 +133,14 @@ print(json.dumps(peaks))
 
 def _peak_bytes(directories: list[Path]) -> list[int]:
   """Peak resident memory of a fresh process after reading each directory in turn."""
-  proc = subprocess.run([sys.executable, "-c", _MEASURE, *map(str, directories)],
-                        env=environ(JAX_PLATFORMS="cpu"), capture_output=True, text=True,
-                        timeout=300, check=True)
+  proc = subprocess.run(
+      [sys.executable, "-c", _MEASURE, *map(str, directories)],
+      env=environ(JAX_PLATFORMS="cpu"),
+      capture_output=True,
+      text=True,
+      timeout=300,
+      check=True,
+  )
   return json.loads(proc.stdout)
 
 

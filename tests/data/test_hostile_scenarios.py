@@ -20,13 +20,16 @@ def _scenarios(**replace) -> Scenarios:
   return Scenarios(**{**fields, **replace})
 
 
-@pytest.mark.parametrize("field, value, problem", [
-    ("xi", np.zeros((M, 9, 75, 4)).astype(str), "dtype <U"),
-    ("xi", np.zeros((M, 9, 75, 4), object), "dtype object"),
-    ("v0", np.full(M, 20 + 1j), "dtype complex128"),
-    ("psi0", [0.0, 0.1, [0.2], 0.3], "is not an array"),  # ragged
-    ("v0", ["fast"] * M, "dtype <U4"),
-])
+@pytest.mark.parametrize(
+    "field, value, problem",
+    [
+        ("xi", np.zeros((M, 9, 75, 4)).astype(str), "dtype <U"),
+        ("xi", np.zeros((M, 9, 75, 4), object), "dtype object"),
+        ("v0", np.full(M, 20 + 1j), "dtype complex128"),
+        ("psi0", [0.0, 0.1, [0.2], 0.3], "is not an array"),  # ragged
+        ("v0", ["fast"] * M, "dtype <U4"),
+    ],
+)
 def test_inputs_that_are_not_real_numbers_name_the_field(field, value, problem):
   with pytest.raises(UserError, match=rf"field '{field}' .*{problem}"):
     _scenarios(**{field: value}).validate(fields=INPUTS, dtypes=False)

@@ -38,8 +38,13 @@ def _same_tracks(dataset_dir: Path, recording_id: int) -> int:
     mine = ours.track_id == track_id
     np.testing.assert_array_equal(track.get_data("frame"), ours.frame[mine])
     sign = 1.0 if track.get_meta_data("drivingDirection") == 2 else -1.0
-    centre = np.stack([track.get_data("x") + 0.5 * track.get_data("width"),
-                       track.get_data("y") + 0.5 * track.get_data("height")], -1)
+    centre = np.stack(
+        [
+            track.get_data("x") + 0.5 * track.get_data("width"),
+            track.get_data("y") + 0.5 * track.get_data("height"),
+        ],
+        -1,
+    )
     np.testing.assert_allclose(ours.pos[mine], centre * [sign, -sign], atol=1e-9)
     velocity = np.stack([track.get_data("xVelocity"), track.get_data("yVelocity")], -1)
     np.testing.assert_allclose(ours.vel[mine], velocity * [sign, -sign], atol=1e-9)

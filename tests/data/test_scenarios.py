@@ -44,8 +44,9 @@ def test_named_fields_only():
   xi[1, 4, 10, 3] = np.nan
   with pytest.raises(ValueError, match=r"scenarios: field 'xi' holds NaN/inf \(scenario 1\)"):
     _with(s, xi=xi).validate(fields=PREDICTOR_FIELDS)
-  with pytest.raises(ValueError, match=r"field 'mask' has shape \(3, 9, 50\), expected "
-                                       r"\(3, 9, 75\)"):
+  with pytest.raises(
+      ValueError, match=r"field 'mask' has shape \(3, 9, 50\), expected " r"\(3, 9, 75\)"
+  ):
     _with(s, mask=s.mask[:, :, :50]).validate(fields=PREDICTOR_FIELDS)
   with pytest.raises(ValueError, match=r"unknown field\(s\) \['speed'\]"):
     s.validate(fields=("xi", "speed"))

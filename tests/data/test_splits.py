@@ -51,8 +51,9 @@ def test_highd_test_only_dataset_for_a_trained_model(highd_config, tmp_path):
   assert list(splits) == ["test"]
   assert sorted(set(splits["test"].recording_id.tolist())) == [1, 2, 3]
   assert dataset.split_names(tmp_path / "out") == ["test"]
-  np.testing.assert_array_equal(dataset.load_split(tmp_path / "out", "test").label,
-                                splits["test"].label)
+  np.testing.assert_array_equal(
+      dataset.load_split(tmp_path / "out", "test").label, splits["test"].label
+  )
   with pytest.raises(DataError, match=r"unknown split 'train', available: \['test'\]"):
     dataset.load_split(tmp_path / "out", "train")
 
@@ -68,6 +69,7 @@ def test_highd_no_split_at_all_is_refused(highd_config, tmp_path):
 
 def test_highd_test_ood_and_val_ood_are_built_when_given(highd_config, highd_dir, tmp_path):
   from tests.data.conftest import write_recording
+
   write_recording(highd_dir, 4)
   write_recording(highd_dir, 5)
   config = highd_config()
@@ -75,13 +77,16 @@ def test_highd_test_ood_and_val_ood_are_built_when_given(highd_config, highd_dir
   splits = dataset.build(config, tmp_path / "out")
   assert list(splits) == ["train", "val", "test", "test_ood"]
   assert {k: sorted(set(v.recording_id.tolist())) for k, v in splits.items()} == {
-      "train": [1], "val": [3], "test": [2], "test_ood": [4]}
+      "train": [1],
+      "val": [3],
+      "test": [2],
+      "test_ood": [4],
+  }
   assert dataset.split_names(tmp_path / "out") == ["train", "val", "test", "test_ood"]
   config.splits.val_ood = (5,)
   splits = dataset.build(config, tmp_path / "out")
   assert sorted(set(splits["val_ood"].recording_id.tolist())) == [5]
-  assert dataset.split_names(tmp_path / "out") == ["train", "val", "test", "test_ood",
-                                                   "val_ood"]
+  assert dataset.split_names(tmp_path / "out") == ["train", "val", "test", "test_ood", "val_ood"]
   config.splits.val_ood = (4,)  # a recording in two splits
   with pytest.raises(DataError, match="recording 4 is in both test_ood and val_ood"):
     dataset.build(config, tmp_path / "out")
@@ -110,8 +115,9 @@ def test_cvmd_mat_val_is_carved_from_train(highd_config, tmp_path):
   pooled = np.concatenate([splits["train"].future, splits["val"].future])
   reference = cvmd_mat.load(tmp_path / "mat" / "train").future
   assert sorted(map(bytes, pooled)) == sorted(map(bytes, reference))
-  np.testing.assert_array_equal(splits["test"].future,
-                                cvmd_mat.load(tmp_path / "mat" / "test").future)
+  np.testing.assert_array_equal(
+      splits["test"].future, cvmd_mat.load(tmp_path / "mat" / "test").future
+  )
   config.mat_val_fraction = 0.1  # round(0.1 * 2) = 0 files per class: no val
   with pytest.raises(DataError, match="mat_val_fraction"):
     dataset.build(config, tmp_path / "out2")
@@ -119,8 +125,12 @@ def test_cvmd_mat_val_is_carved_from_train(highd_config, tmp_path):
 
 def test_tokenizer_tokenises_every_cached_split(highd_config, tmp_path):
   splits = dataset.build(highd_config(), tmp_path / "out")
-  renamed = {"train": splits["train"], "val": splits["val"], "test": splits["test"],
-             "test_ood": splits["test"]}
+  renamed = {
+      "train": splits["train"],
+      "val": splits["val"],
+      "test": splits["test"],
+      "test_ood": splits["test"],
+  }
   meta = cache.read_metadata(tmp_path / "out" / "cache")
   cache.write(tmp_path / "out" / "cache", renamed, meta["settings"], meta["sources"])
   config = tokenizer_config.get_config("tiny")
@@ -138,8 +148,7 @@ def test_sumo_tiny_splits_by_recording_and_held_out_road(tmp_path):
   config.extraction.balance = False
   splits = dataset.build(config, tmp_path)
   ids = sumo_plan.split_ids(config.sumo)
-  assert list(splits) == [name for name in ids if ids[name]] == ["train", "val", "test",
-                                                                  "test_ood"]
+  assert list(splits) == [name for name in ids if ids[name]] == ["train", "val", "test", "test_ood"]
   for name, s in splits.items():
     assert len(s) > 0 and set(s.recording_id.tolist()) <= set(ids[name]), name
 
@@ -161,8 +170,7 @@ def test_sumo_road_of_ones_own_as_a_test_ood_only_dataset(tmp_path):
   config = dataset_config.get_config("tiny")
   for name in ("train", "val", "test", "val_ood"):
     config.sumo.recordings[name] = 0
-  config.sumo.held_out.update(lanes=2, lane_width_m=3.25, speed_limit_kmh=80.0,
-                              duration_s=30.0)
+  config.sumo.held_out.update(lanes=2, lane_width_m=3.25, speed_limit_kmh=80.0, duration_s=30.0)
   config.extraction.balance = False
   splits = dataset.build(config, tmp_path)
   assert list(splits) == ["test_ood"] and len(splits["test_ood"]) > 0

@@ -56,8 +56,11 @@ def test_sumo_export_is_highd_format(tmp_path, lanes):
   key = t.set_index(["frame", "id"])
   sign = np.where(t.drivingDirection == 2, 1.0, -1.0)
   cx = t.x + t.width / 2
-  for column, lane_step, check in (("precedingId", 0, "ahead"), ("leftAlongsideId", -1, "over"),
-                                   ("rightFollowingId", 1, "behind")):
+  for column, lane_step, check in (
+      ("precedingId", 0, "ahead"),
+      ("leftAlongsideId", -1, "over"),
+      ("rightFollowingId", 1, "behind"),
+  ):
     rows = t[column] > 0
     other = key.loc[list(zip(t.frame[rows], t[column][rows]))]
     s = sign[rows.to_numpy()]
@@ -85,8 +88,11 @@ def test_lane_ids_follow_the_sumo_network(tmp_path, lanes):
   cfg = _one_recording(lanes, 3.5)
   plan = sumo_plan.plans(cfg)[1]
   net = sumo_network.write_network(cfg, plan.road, tmp_path)
-  lane_y = {lane.get("id"): float(lane.get("shape").split()[0].split(",")[1])
-            for lane in ET.parse(net).getroot().iter("lane") if lane.get("id")[0] in "EW"}
+  lane_y = {
+      lane.get("id"): float(lane.get("shape").split()[0].split(",")[1])
+      for lane in ET.parse(net).getroot().iter("lane")
+      if lane.get("id")[0] in "EW"
+  }
   assert len(lane_y) == 2 * lanes
   car = plan.types[0]
   rows, expected = [], {}
@@ -97,8 +103,18 @@ def test_lane_ids_follow_the_sumo_network(tmp_path, lanes):
     for step in range(10):
       time = cfg.warmup_s + step * 0.04
       x = 500.0 + (30.0 * step * 0.04 if east else -30.0 * step * 0.04)
-      rows.append({"time": time, "id": f"v{k}", "x": x, "y": y, "angle": 90.0 if east else 270.0,
-                   "type": car.name, "speed": 30.0, "acc": 0.0})
+      rows.append(
+          {
+              "time": time,
+              "id": f"v{k}",
+              "x": x,
+              "y": y,
+              "angle": 90.0 if east else 270.0,
+              "type": car.name,
+              "speed": 30.0,
+              "acc": 0.0,
+          }
+      )
   sumo_export.export_recording(pd.DataFrame(rows), cfg, plan, tmp_path)
   tracks = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracks"])
   meta = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracksMeta"])
@@ -106,8 +122,9 @@ def test_lane_ids_follow_the_sumo_network(tmp_path, lanes):
   got = tracks.groupby("id")["laneId"].agg(set).to_dict()
   assert got == {i + 1: {expected[f"v{i}"]} for i in range(2 * lanes)}
   direction = meta.set_index("id")["drivingDirection"].to_dict()
-  assert all(direction[i + 1] == (2 if expected[f"v{i}"] > lanes + 1 else 1)
-             for i in range(2 * lanes))
+  assert all(
+      direction[i + 1] == (2 if expected[f"v{i}"] > lanes + 1 else 1) for i in range(2 * lanes)
+  )
 
 
 @pytest.mark.usefixtures("eclipse_sumo")
@@ -119,7 +136,8 @@ def test_recordings_are_deterministic_under_the_seed(tmp_path):
   for kind, path in highd.recording_paths(tmp_path / "a", 1).items():
     assert path.read_bytes() == highd.recording_paths(tmp_path / "b", 1)[kind].read_bytes()
   assert (tmp_path / "a" / sumo.PLANS_FILE).read_text() == (
-      tmp_path / "b" / sumo.PLANS_FILE).read_text()
+      tmp_path / "b" / sumo.PLANS_FILE
+  ).read_text()
 
 
 def test_without_eclipse_sumo_the_source_is_refused_naming_it(tmp_path, monkeypatch):

@@ -1,7 +1,6 @@
 """Per-recording SUMO plans: split numbering, ranges, the held-out road, determinism, and
 the vTypes written for SUMO."""
 
-import dataclasses
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -31,8 +30,10 @@ def test_splits_are_disjoint_consecutive_and_complete(preset):
 
 
 def test_default_sizes_of_the_presets():
-  counts = {preset: {k: len(v) for k, v in sumo_plan.split_ids(_sumo(preset)).items()}
-            for preset in ("", "small", "tiny")}
+  counts = {
+      preset: {k: len(v) for k, v in sumo_plan.split_ids(_sumo(preset)).items()}
+      for preset in ("", "small", "tiny")
+  }
   assert counts[""] == {"train": 10, "val": 2, "test": 3, "test_ood": 2, "val_ood": 1}
   assert counts["small"] == {"train": 12, "val": 2, "test": 2, "test_ood": 1, "val_ood": 1}
 
@@ -57,8 +58,12 @@ def test_held_out_road_is_in_no_other_split(preset):
   assert held
   for p in held:
     assert p.road == sumo_plan.Road(4, 3.5, 110.0 / 3.6)
-    assert all(p.road.lanes != q.road.lanes and p.road.lane_width_m != q.road.lane_width_m
-               and p.road.speed_limit_ms != q.road.speed_limit_ms for q in seen)
+    assert all(
+        p.road.lanes != q.road.lanes
+        and p.road.lane_width_m != q.road.lane_width_m
+        and p.road.speed_limit_ms != q.road.speed_limit_ms
+        for q in seen
+    )
     assert p.flow_veh_per_hour > max(q.flow_veh_per_hour for q in seen)
     assert 700 <= p.flow_per_lane <= 900
 
@@ -74,8 +79,11 @@ def test_val_ood_road_is_in_no_other_split(preset):
   assert held
   for p in held:
     assert p.road == sumo_plan.Road(3, 3.5, 90.0 / 3.6) and p.road not in ood
-    assert all(p.road.lane_width_m != q.road.lane_width_m
-               and p.road.speed_limit_ms != q.road.speed_limit_ms for q in seen)
+    assert all(
+        p.road.lane_width_m != q.road.lane_width_m
+        and p.road.speed_limit_ms != q.road.speed_limit_ms
+        for q in seen
+    )
     assert 800 <= p.flow_per_lane <= 1000
 
 
@@ -92,8 +100,7 @@ def test_draws_lie_in_the_documented_ranges():
   plans = sumo_plan.plans(cfg).values()
   for p in plans:
     assert np.isclose(sum(t.probability for t in p.types), 1.0)
-    assert np.isclose(sum(t.probability for t in p.types if t.vclass == "Truck"),
-                      p.truck_share)
+    assert np.isclose(sum(t.probability for t in p.types if t.vclass == "Truck"), p.truck_share)
     assert 0.1 <= p.truck_share <= 0.3
     assert p.car_following in ("Krauss", "IDM")
     assert [t.vclass for t in p.types] == ["Car"] * 3 + ["Truck"] * 2
@@ -103,8 +110,7 @@ def test_draws_lie_in_the_documented_ranges():
     for t in p.types:
       ranges = (cfg.car if t.vclass == "Car" else cfg.truck).to_dict()
       for key, (lo, hi) in ranges.items():
-        value = (t.desired_max_speed_ms * 3.6 if key == "desired_max_speed_kmh"
-                 else getattr(t, key))
+        value = t.desired_max_speed_ms * 3.6 if key == "desired_max_speed_kmh" else getattr(t, key)
         assert lo - 1e-9 <= value <= hi + 1e-9, (t.name, key, value)
   # Recordings differ: both car-following models, several speed limits and spread drivers.
   assert {p.car_following for p in plans} == {"Krauss", "IDM"}
@@ -133,10 +139,17 @@ def test_routes_carry_the_plan(tmp_path):
   assert [v.get("id") for v in vtypes] == [t.name for t in plan.types]
   for v, t in zip(vtypes, plan.types):
     assert v.get("carFollowModel") == plan.car_following
-    for field, attr in (("accel", "accel"), ("decel", "decel"), ("sigma", "sigma"),
-                        ("tau", "tau"), ("lc_speed_gain", "lcSpeedGain"),
-                        ("lc_keep_right", "lcKeepRight"), ("max_speed_lat", "maxSpeedLat"),
-                        ("lc_accel_lat", "lcAccelLat"), ("length_m", "length")):
+    for field, attr in (
+        ("accel", "accel"),
+        ("decel", "decel"),
+        ("sigma", "sigma"),
+        ("tau", "tau"),
+        ("lc_speed_gain", "lcSpeedGain"),
+        ("lc_keep_right", "lcKeepRight"),
+        ("max_speed_lat", "maxSpeedLat"),
+        ("lc_accel_lat", "lcAccelLat"),
+        ("length_m", "length"),
+    ):
       assert float(v.get(attr)) == pytest.approx(getattr(t, field), abs=5e-3)
     assert v.get("speedFactor").startswith(f"normc({t.speed_factor:.3f},")
     assert (v.get("desiredMaxSpeed") is None) == (t.vclass == "Car")

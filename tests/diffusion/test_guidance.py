@@ -18,8 +18,10 @@ def paper_w(t, delta, w_min=0.1, w_base=1.0, t_c=50.0):
   return w_min + (w_max - w_min) * (1 - math.cos(math.pi * t / T)) / 2
 
 
-@pytest.mark.parametrize("t,delta", [(0, 0.0), (T, 0.0), (0, 10.0), (T, 10.0), (500, 25.0),
-                                     (T, 50.0), (T, 80.0), (300, 70.0)])
+@pytest.mark.parametrize(
+    "t,delta",
+    [(0, 0.0), (T, 0.0), (0, 10.0), (T, 10.0), (500, 25.0), (T, 50.0), (T, 80.0), (300, 70.0)],
+)
 def test_weight_matches_paper(t, delta):
   w = float(diffusion.guidance_weight(t, delta, T))
   assert w == pytest.approx(paper_w(t, delta), abs=1e-6)
@@ -61,8 +63,9 @@ def test_guided_v_equals_eps_space_combination(form):
   v = diffusion.guided_v_fn(_toy_model, cond, null, delta, schedule, cfg)(x_t, t)
   abar = schedule.alphas_cumprod[t]
   w = diffusion.guidance_weight(t, delta, T, cfg)
-  eps = diffusion.guided_eps(_toy_model(x_t, t, cond), _toy_model(x_t, t, jnp.full(4, null)),
-                             x_t, abar, w, form)
+  eps = diffusion.guided_eps(
+      _toy_model(x_t, t, cond), _toy_model(x_t, t, jnp.full(4, null)), x_t, abar, w, form
+  )
   np.testing.assert_allclose(diffusion.eps_from_v(x_t, v, abar), eps, atol=1e-4)
 
 
@@ -81,6 +84,7 @@ def test_zero_weight_runs_the_one_branch_the_combination_keeps(form, kept):
   assert rows == [3]
   want = _toy_model(x_t, t, cond if kept == "cond" else jnp.full(3, null))
   np.testing.assert_array_equal(v, want)
-  pair = diffusion.combine_eps(_toy_model(x_t, t, cond), _toy_model(x_t, t, jnp.full(3, null)),
-                               jnp.zeros(3), form)
+  pair = diffusion.combine_eps(
+      _toy_model(x_t, t, cond), _toy_model(x_t, t, jnp.full(3, null)), jnp.zeros(3), form
+  )
   np.testing.assert_array_equal(v, pair)

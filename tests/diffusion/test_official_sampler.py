@@ -31,8 +31,12 @@ def numpy_official(x_T, abar, steps, w_start, w_end, clip, eta=0.0, noises=None)
   grid = [int(np.floor(v)) for v in np.linspace(0, len(abar) - 1, steps)][1:][::-1]
   prev = grid[1:] + [0]
   n = len(grid)
-  w = [F32(w_start + (w_end - w_start) * (1 - np.cos(np.pi * i / (n - 1))) / 2) if n > 1
-       else F32(w_start) for i in range(n)]
+  w = [
+      F32(w_start + (w_end - w_start) * (1 - np.cos(np.pi * i / (n - 1))) / 2)
+      if n > 1
+      else F32(w_start)
+      for i in range(n)
+  ]
   x = x_T.astype(F32)
   c_cond = F32(0.125)
   for i, (t, tp) in enumerate(zip(grid, prev)):
@@ -64,30 +68,44 @@ def test_official_grid_and_weights():
   assert t_prev.tolist() == [888, 777, 666, 555, 444, 333, 222, 111, 0]
   # floor(linspace(0, 999, 7)) = 0, 166, 333, 499, 666, 832, 999
   assert diffusion.official_ddim_timesteps(1000, 7)[0].tolist() == [999, 832, 666, 499, 333, 166]
-  np.testing.assert_allclose(diffusion.official_step_weights(9),
-                             [0.1, 0.134, 0.232, 0.378, 0.55, 0.722, 0.868, 0.966, 1.0],
-                             atol=1e-3)
+  np.testing.assert_allclose(
+      diffusion.official_step_weights(9),
+      [0.1, 0.134, 0.232, 0.378, 0.55, 0.722, 0.868, 0.966, 1.0],
+      atol=1e-3,
+  )
   with pytest.raises(ValueError, match="official DDIM steps"):
     diffusion.official_ddim_timesteps(1000, 1)
 
 
-@pytest.mark.parametrize("steps,clip,w", [(10, 1.0, (0.1, 1.0)), (10, None, (0.1, 1.0)),
-                                          (7, 1.0, (0.3, 0.6))])
+@pytest.mark.parametrize(
+    "steps,clip,w", [(10, 1.0, (0.1, 1.0)), (10, None, (0.1, 1.0)), (7, 1.0, (0.3, 0.6))]
+)
 def test_official_loop_equals_numpy_reference(schedule, steps, clip, w):
   shape = (6, 125, 2)
   x_T = jax.random.normal(jax.random.key(3), shape)
   q = jnp.full((6,), 2)
   fn = diffusion.cond_uncond_v_fn(analytic_v, q, NULL)
-  got = jax.jit(lambda x: diffusion.official_ddim_sample(
-      fn, jax.random.key(0), shape, schedule, steps=steps, clip_x0=clip, w_start=w[0],
-      w_end=w[1], x_T=x))(x_T)
+  got = jax.jit(
+      lambda x: diffusion.official_ddim_sample(
+          fn,
+          jax.random.key(0),
+          shape,
+          schedule,
+          steps=steps,
+          clip_x0=clip,
+          w_start=w[0],
+          w_end=w[1],
+          x_T=x,
+      )
+  )(x_T)
   want = numpy_official(np.asarray(x_T), np.asarray(schedule.alphas_cumprod), steps, *w, clip)
   np.testing.assert_allclose(got, want, atol=1e-5)
   # the paper-mode loop with the official guidance form and direction is another sampler
   cfg = GuidanceConfig(form="official", direction="official")
   v_fn = diffusion.guided_v_fn(analytic_v, q, NULL, jnp.zeros(6), schedule, cfg)
-  paper = diffusion.ddim_sample(v_fn, jax.random.key(0), shape, schedule, steps=steps,
-                                clip_x0=clip, x_T=x_T)
+  paper = diffusion.ddim_sample(
+      v_fn, jax.random.key(0), shape, schedule, steps=steps, clip_x0=clip, x_T=x_T
+  )
   assert np.abs(np.asarray(paper) - want).max() > 1e-3
 
 
@@ -96,17 +114,34 @@ def test_official_loop_with_noise(schedule):
   x_T = jax.random.normal(jax.random.key(6), shape)
   fn = diffusion.cond_uncond_v_fn(analytic_v, jnp.full((4,), 1), NULL)
   got = diffusion.official_ddim_sample(fn, key, shape, schedule, steps=steps, eta=0.7, x_T=x_T)
-  noises = [np.asarray(jax.random.normal(jax.random.fold_in(key, i), shape))
-            for i in range(steps - 1)]
-  want = numpy_official(np.asarray(x_T), np.asarray(schedule.alphas_cumprod), steps, 0.1, 1.0,
-                        1.0, eta=0.7, noises=noises)
+  noises = [
+      np.asarray(jax.random.normal(jax.random.fold_in(key, i), shape)) for i in range(steps - 1)
+  ]
+  want = numpy_official(
+      np.asarray(x_T),
+      np.asarray(schedule.alphas_cumprod),
+      steps,
+      0.1,
+      1.0,
+      1.0,
+      eta=0.7,
+      noises=noises,
+  )
   np.testing.assert_allclose(got, want, atol=1e-5)
   # without x_T the initial noise comes from fold_in(key, steps)
   own = diffusion.official_ddim_sample(fn, key, shape, schedule, steps=steps, eta=0.7)
   np.testing.assert_array_equal(
-      own, diffusion.official_ddim_sample(fn, key, shape, schedule, steps=steps, eta=0.7,
-                                          x_T=jax.random.normal(jax.random.fold_in(key, steps),
-                                                                shape)))
+      own,
+      diffusion.official_ddim_sample(
+          fn,
+          key,
+          shape,
+          schedule,
+          steps=steps,
+          eta=0.7,
+          x_T=jax.random.normal(jax.random.fold_in(key, steps), shape),
+      ),
+  )
   with pytest.raises(ValueError, match="x_T has shape"):
     diffusion.official_ddim_sample(fn, key, shape, schedule, x_T=jnp.zeros((4, 125, 1)))
 
@@ -114,35 +149,45 @@ def test_official_loop_with_noise(schedule):
 def test_samplers_take_an_explicit_x_T(schedule):
   v_fn = lambda x, t: 0.5 * x
   key, shape = jax.random.key(2), (3, 125, 2)
-  for sample, index in ((lambda **k: diffusion.ddim_sample(v_fn, key, shape, schedule, steps=5,
-                                                           **k), 5),
-                        (lambda **k: diffusion.ddpm_sample(v_fn, key, shape, schedule, **k),
-                         1000)):
+  for sample, index in (
+      (lambda **k: diffusion.ddim_sample(v_fn, key, shape, schedule, steps=5, **k), 5),
+      (lambda **k: diffusion.ddpm_sample(v_fn, key, shape, schedule, **k), 1000),
+  ):
     own_noise = jax.random.normal(jax.random.fold_in(key, index), shape)
     default, same, other = jax.jit(lambda x: (sample(), sample(x_T=x), sample(x_T=2 * x)))(
-        own_noise)
+        own_noise
+    )
     np.testing.assert_array_equal(default, same)
     assert not np.allclose(same, other)
 
 
 @pytest.mark.slow
 def test_inference_official_mode_runs_the_official_loop(schedule):
-  cfg = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
-                          attention_levels=(), num_heads=2)
+  cfg = UNetConfig(
+      num_tokens=4,
+      base_channels=16,
+      channel_mult=(1, 2),
+      groups=8,
+      attention_levels=(),
+      num_heads=2,
+  )
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
-  sampling = SamplingConfig(num_samples=3, mode="official", steps=5,
-                                      guidance=GuidanceConfig(w_min=0.2, w_max_base=0.8))
+  sampling = SamplingConfig(
+      num_samples=3, mode="official", steps=5, guidance=GuidanceConfig(w_min=0.2, w_max_base=0.8)
+  )
   key = jax.random.key(4)
   model = lambda x, t, c: unet1d.apply_unet(g, p, x, t, c)
   fn = diffusion.cond_uncond_v_fn(model, jnp.full((3,), 1), cfg.null_token)
 
   @jax.jit
   def both(p):
-    got = sampling_lib.sample_controls(g, p, 1, 80.0, key, schedule=schedule,
-                                    null_token=cfg.null_token, config=sampling)
-    return got, diffusion.official_ddim_sample(fn, key, (3, 125, 2), schedule, steps=5,
-                                               w_start=0.2, w_end=0.8)
+    got = sampling_lib.sample_controls(
+        g, p, 1, 80.0, key, schedule=schedule, null_token=cfg.null_token, config=sampling
+    )
+    return got, diffusion.official_ddim_sample(
+        fn, key, (3, 125, 2), schedule, steps=5, w_start=0.2, w_end=0.8
+    )
 
   got, want = both(p)
   np.testing.assert_allclose(got, want, atol=1e-5)

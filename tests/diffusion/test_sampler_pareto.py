@@ -6,12 +6,25 @@ from experiments import sampler_pareto
 
 
 def _row(sampler, steps, ade):
-  return {"sampler": sampler, "steps": steps, "evaluations": 2 * steps, "mean_ade": ade,
-          "mean_fde": 3 * ade, "min_ade_k": ade - 0.1, "min_fde_k": 3 * ade - 0.2}
+  return {
+      "sampler": sampler,
+      "steps": steps,
+      "evaluations": 2 * steps,
+      "mean_ade": ade,
+      "mean_fde": 3 * ade,
+      "min_ade_k": ade - 0.1,
+      "min_fde_k": 3 * ade - 0.2,
+  }
 
 
-ROWS = [_row("ddim", 2, 1.30), _row("ddim", 5, 1.03), _row("ddim", 10, 1.00),
-        _row("dpmpp2m", 3, 1.025), _row("dpmpp2m", 4, 1.019), _row("dpmpp2m", 5, 1.01)]
+ROWS = [
+    _row("ddim", 2, 1.30),
+    _row("ddim", 5, 1.03),
+    _row("ddim", 10, 1.00),
+    _row("dpmpp2m", 3, 1.025),
+    _row("dpmpp2m", 4, 1.019),
+    _row("dpmpp2m", 5, 1.01),
+]
 
 
 def test_fewest_evaluations_within_the_tolerance():
@@ -40,7 +53,7 @@ def test_reference_must_be_evaluated():
 
 def test_markdown_marks_the_choice_and_sorts_by_cost():
   table = sampler_pareto.markdown(ROWS, ROWS[4], 0.02, "note").splitlines()
-  body = [l for l in table if l.startswith("| ddim") or l.startswith("| dpmpp2m")]
-  assert [l.split("|")[3].strip() for l in body] == ["4", "6", "8", "10", "10", "20"]
-  assert "**(default)**" in body[2] and sum("default" in l for l in body) == 1
+  body = [r for r in table if r.startswith("| ddim") or r.startswith("| dpmpp2m")]
+  assert [r.split("|")[3].strip() for r in body] == ["4", "6", "8", "10", "10", "20"]
+  assert "**(default)**" in body[2] and sum("default" in r for r in body) == 1
   assert "dpmpp2m S = 4" in table[-1] and "chosen on val" in table[-1]

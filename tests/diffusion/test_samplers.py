@@ -29,8 +29,9 @@ def test_ddpm_reproduces_gaussian(schedule):
 
 
 def test_ddim_many_steps_reproduces_gaussian(schedule):
-  sample = jax.jit(lambda k: diffusion.ddim_sample(_v_fn(schedule), k, (4096, 16, 2), schedule,
-                                                   steps=200))
+  sample = jax.jit(
+      lambda k: diffusion.ddim_sample(_v_fn(schedule), k, (4096, 16, 2), schedule, steps=200)
+  )
   _check_moments(sample(jax.random.key(1)))
 
 
@@ -70,15 +71,15 @@ def test_ddim_eta_one_matches_numpy_loop(schedule):
   out = diffusion.ddim_sample(_v_fn(schedule), key, shape, schedule, steps=10, eta=1.0)
   x_T = np.asarray(jax.random.normal(jax.random.fold_in(key, 10), shape))
   noises = [np.asarray(jax.random.normal(jax.random.fold_in(key, i), shape)) for i in range(10)]
-  ref = _numpy_ddim(x_T, schedule.alphas_cumprod, list(diffusion.ddim_timesteps(1000, 10)),
-                    eta=1.0, noises=noises)
+  ref = _numpy_ddim(
+      x_T, schedule.alphas_cumprod, list(diffusion.ddim_timesteps(1000, 10)), eta=1.0, noises=noises
+  )
   np.testing.assert_allclose(np.asarray(out), ref, atol=2e-4)
 
 
 def test_ddim_clip_bounds_x0(schedule):
   wild = lambda x_t, t: -10.0 * x_t  # predicts x0 far outside [-1, 1]
-  out = diffusion.ddim_sample(wild, jax.random.key(0), (4, 125, 2), schedule, steps=10,
-                              clip_x0=1.0)
+  out = diffusion.ddim_sample(wild, jax.random.key(0), (4, 125, 2), schedule, steps=10, clip_x0=1.0)
   assert np.all(np.abs(np.asarray(out)) <= 1.0 + 1e-6)
 
 

@@ -54,15 +54,24 @@ def test_v_loss_zero_for_oracle_and_drops_condition():
     seen.append(cond)
     return jnp.sqrt(abar) * eps - jnp.sqrt(1 - abar) * 0.3
 
-  loss = diffusion.v_loss(oracle, x0, jnp.zeros(512, jnp.int32), jax.random.key(0), schedule,
-                          null_cond=7, cond_drop_prob=0.25)
+  loss = diffusion.v_loss(
+      oracle,
+      x0,
+      jnp.zeros(512, jnp.int32),
+      jax.random.key(0),
+      schedule,
+      null_cond=7,
+      cond_drop_prob=0.25,
+  )
   assert float(loss) < 1e-8
   share = float(jnp.mean(seen[0] == 7))
   assert 0.18 < share < 0.32
   zero = lambda x_t, t, c: jnp.zeros_like(x_t)
   w = jnp.concatenate([jnp.ones(256), jnp.zeros(256)])
-  full = diffusion.v_loss(zero, x0, jnp.zeros(512, jnp.int32), jax.random.key(1), schedule,
-                          null_cond=7)
-  half = diffusion.v_loss(zero, x0, jnp.zeros(512, jnp.int32), jax.random.key(1), schedule,
-                          null_cond=7, weight=w)
+  full = diffusion.v_loss(
+      zero, x0, jnp.zeros(512, jnp.int32), jax.random.key(1), schedule, null_cond=7
+  )
+  half = diffusion.v_loss(
+      zero, x0, jnp.zeros(512, jnp.int32), jax.random.key(1), schedule, null_cond=7, weight=w
+  )
   assert float(full) > 0.5 and abs(float(half) - float(full)) < 0.2

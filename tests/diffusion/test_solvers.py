@@ -82,15 +82,21 @@ def test_reproduces_gaussian_moments(schedule):
 
 def test_clip_bounds_every_predicted_x0(schedule):
   v_fn = lambda x, t: 5.0 * gaussian_v(x, t, schedule.alphas_cumprod)
-  out = solvers.dpmpp_2m_sample(v_fn, jax.random.key(4), (64, 4, 2), schedule, steps=1,
-                                clip_x0=1.0)
+  out = solvers.dpmpp_2m_sample(v_fn, jax.random.key(4), (64, 4, 2), schedule, steps=1, clip_x0=1.0)
   assert np.abs(np.asarray(out)).max() <= 1.0 + 1e-6
 
 
 def _tiny_unet():
   from cvmdx_jax.models import unet1d
-  cfg = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
-                          attention_levels=(1,), num_heads=2)
+
+  cfg = UNetConfig(
+      num_tokens=4,
+      base_channels=16,
+      channel_mult=(1, 2),
+      groups=8,
+      attention_levels=(1,),
+      num_heads=2,
+  )
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
   return cfg, g, p
@@ -102,6 +108,7 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
   many-step DDIM does: both integrate the same guided probability-flow ODE."""
   from cvmdx_jax.inference import sampling
   from tests.inference.denoisers import bundle
+
   cfg, g, p = _tiny_unet()
   predict = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
   b = 2
@@ -109,9 +116,16 @@ def test_predict_batch_with_dpmpp2m_matches_many_step_ddim():
 
   def run(sampler, steps):
     config = SamplingConfig(num_samples=3, sampler=sampler, steps=steps, clip_x0=None)
-    return predict(bundle(g, p, cfg), jnp.arange(b), jnp.array([5.0, 40.0]), jnp.full(b, 30.0),
-                   jnp.zeros(b), keys, schedule=diffusion.cosine_schedule(),
-                   config=config).controls
+    return predict(
+        bundle(g, p, cfg),
+        jnp.arange(b),
+        jnp.array([5.0, 40.0]),
+        jnp.full(b, 30.0),
+        jnp.zeros(b),
+        keys,
+        schedule=diffusion.cosine_schedule(),
+        config=config,
+    ).controls
 
   few = run("dpmpp2m", 4)
   assert few.shape == (b, 3, 125, 2) and bool(jnp.all(jnp.isfinite(few)))

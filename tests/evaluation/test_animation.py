@@ -39,9 +39,14 @@ def _predictions(rec, track: int, frame: int, shift_y: float):
   future, _ = frames.futures(rec, rows)
   means = np.stack([future[0], future[0] + [0.0, shift_y]])[None]
   return recording.VehiclePredictions(
-      recording_id=np.array([1]), frame=np.array([frame]), track_id=np.array([track]),
-      means=means, probs=np.array([[0.7, 0.3]]), samples=None,
-      out_of_distribution=np.zeros(1, bool))
+      recording_id=np.array([1]),
+      frame=np.array([frame]),
+      track_id=np.array([track]),
+      means=means,
+      probs=np.array([[0.7, 0.3]]),
+      samples=None,
+      out_of_distribution=np.zeros(1, bool),
+  )
 
 
 def test_one_image_per_frame_and_the_vehicles_move(scene):
@@ -62,6 +67,7 @@ def test_predictions_are_drawn_at_their_frame_only(scene):
   orange = (red > 200) & (green > 100) & (green < 200) & (blue < 150)
   assert changed.sum() > 200 and orange.mean() > 0.5
 
+
 def test_no_frames_is_refused(scene):
   with pytest.raises(ValueError, match="no frames"):
     animation.render_gif(*scene, [])
@@ -70,16 +76,27 @@ def test_no_frames_is_refused(scene):
 @pytest.mark.slow  # ~10 s of CPU compiling a predictor; make demo runs write_clip too
 def test_write_clip_predicts_the_section_and_writes_the_gif(tmp_path):
   from tests.inference.test_retrace import _random_predictor
+
   write_recording(tmp_path, 1)
   path = tmp_path / "clip.gif"
   # frames 101 .. 126 every 5; the middle 100 m of the road's extent in tracks.csv
-  summary = animation.write_clip(_random_predictor(chunk_size=4), tmp_path, 1, path,
-                                 start_s=4.0, seconds=1.0, section_m=100.0, num_samples=None)
+  summary = animation.write_clip(
+      _random_predictor(chunk_size=4),
+      tmp_path,
+      1,
+      path,
+      start_s=4.0,
+      seconds=1.0,
+      section_m=100.0,
+      num_samples=None,
+  )
   assert Image.open(path).n_frames == 6
   tracks = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracks"])
   centre = tracks["x"] + 2.0
   middle = (centre.min() + centre.max()) / 2
-  in_clip = tracks[tracks["frame"].isin(range(101, 127, 5))
-                   & (tracks["frame"] - tracks.groupby("id")["frame"].transform("min") >= 74)
-                   & ((tracks["x"] + 2.0 - middle).abs() <= 50.0)]
+  in_clip = tracks[
+      tracks["frame"].isin(range(101, 127, 5))
+      & (tracks["frame"] - tracks.groupby("id")["frame"].transform("min") >= 74)
+      & ((tracks["x"] + 2.0 - middle).abs() <= 50.0)
+  ]
   assert summary["predictions"] == len(in_clip) > 0

@@ -40,10 +40,17 @@ def test_token_mean_rolls_out_each_tokens_mean_controls():
   train_controls[2:, :, 1] = 0.01  # token 2: yaw rate 0.01
   train_tokens = np.array([0, 0, 2, 2, 2])
   v0, psi0 = np.array([20.0, 30.0, 25.0]), np.array([0.0, 0.1, 0.0])
-  out = np.asarray(baselines.token_mean(train_controls, train_tokens, np.array([0, 2, 1]),
-                                        v0, psi0, codebook_size=3))
-  expected = [np.tile([2.0, 0.0], (125, 1)), np.tile([0.0, 0.01], (125, 1)),
-              train_controls.mean(0)]  # token 1 is unused: mean over all
+  out = np.asarray(
+      baselines.token_mean(
+          train_controls, train_tokens, np.array([0, 2, 1]), v0, psi0, codebook_size=3
+      )
+  )
+  expected = [
+      np.tile([2.0, 0.0], (125, 1)),
+      np.tile([0.0, 0.01], (125, 1)),
+      train_controls.mean(0),
+  ]  # token 1 is unused: mean over all
   for i in range(3):
-    np.testing.assert_allclose(out[i], np.asarray(vmm.rollout(expected[i], v0[i], psi0[i])),
-                               rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        out[i], np.asarray(vmm.rollout(expected[i], v0[i], psi0[i])), rtol=1e-5, atol=1e-4
+    )

@@ -13,12 +13,15 @@ def test_planned_rows_need_both_methods():
 
 
 def test_paired_difference_by_hand():
-  errors = {"cvmdx_mean": {"ade": np.array([1.0, 2.0, 3.0, 4.0])},
-            "cv": {"ade": np.array([2.0, 3.0, 4.0, 5.0])}}
+  errors = {
+      "cvmdx_mean": {"ade": np.array([1.0, 2.0, 3.0, 4.0])},
+      "cv": {"ade": np.array([2.0, 3.0, 4.0, 5.0])},
+  }
   rows = comparisons.paired(errors, [1, 1, 1, 1], [1, 2, 3, 4], [0, 0, 1, 2])
   by = {(r["metric"], r["subset"]): r["by_seed"][""] for r in rows}
   assert by[("ade", "all")]["difference"] == -1.0
   assert by[("ade", "all")]["verdict"] == "better"  # every vehicle's difference is -1
   assert by[("ade", "lcr")]["a"] == 3.0
   assert "| cvmdx_mean - cv | ade | all | -1.000 [-1.000, -1.000] better |" in (
-      comparisons.markdown(rows))
+      comparisons.markdown(rows)
+  )

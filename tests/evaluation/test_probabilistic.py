@@ -23,9 +23,9 @@ def test_energy_score_of_1d_gaussian_samples_is_the_closed_form():
     z = (y - mu) / sigma
     # E|X - y| = sigma (2 phi(z) + z (2 Phi(z) - 1)), E|X - X'| = 2 sigma / sqrt(pi)
     want = sigma * (2 * stats.norm.pdf(z) + z * (2 * stats.norm.cdf(z) - 1)) - sigma / math.sqrt(
-        math.pi)
-    got = float(probabilistic.energy_score(_as_trajectories(samples),
-                                           _as_trajectories([y])[0]))
+        math.pi
+    )
+    got = float(probabilistic.energy_score(_as_trajectories(samples), _as_trajectories([y])[0]))
     np.testing.assert_allclose(got, want, rtol=0.03, atol=0.02)
 
 
@@ -47,10 +47,13 @@ def test_energy_score_is_lowest_for_the_true_distribution():
   t, n, draws = 4, 200, 400
   true_sd = np.array([1.0, 0.3])
   truths = rng.normal(0.0, 1.0, (draws, t, 2)) * true_sd
+
   def mean_score(shift, scale):
     samples = shift + scale * rng.normal(0.0, 1.0, (draws, n, t, 2)) * true_sd
-    return float(jnp.mean(probabilistic.energy_score(samples.astype(np.float32),
-                                                     truths.astype(np.float32))))
+    return float(
+        jnp.mean(probabilistic.energy_score(samples.astype(np.float32), truths.astype(np.float32)))
+    )
+
   truth = mean_score(0.0, 1.0)
   for shift, scale in ((0.5, 1.0), (0.0, 0.5), (0.0, 2.0)):
     assert truth < mean_score(shift, scale)
@@ -66,14 +69,21 @@ def test_hypothesis_covariances_and_nll_agree_with_numpy_and_scipy():
   for k in range(3):
     members = points[labels == k]
     np.testing.assert_allclose(means[k], members.mean(axis=0), rtol=1e-5)
-    want = (np.cov(members.T, bias=True) if len(members) > 1 else np.zeros((2, 2)))
+    want = np.cov(members.T, bias=True) if len(members) > 1 else np.zeros((2, 2))
     np.testing.assert_allclose(cov[k], want + floor * np.eye(2), rtol=1e-5, atol=1e-6)
   for y in (np.array([0.5, -0.2]), np.array([8.0, 2.0])):
-    density = sum(probs[k] * stats.multivariate_normal(np.asarray(means[k], np.float64),
-                                                       np.asarray(cov[k], np.float64)).pdf(y)
-                  for k in range(3))
-    got = float(probabilistic.mixture_nll(means, cov, jnp.asarray(probs, jnp.float32),
-                                          jnp.asarray(y, jnp.float32)))
+    density = sum(
+        probs[k]
+        * stats.multivariate_normal(
+            np.asarray(means[k], np.float64), np.asarray(cov[k], np.float64)
+        ).pdf(y)
+        for k in range(3)
+    )
+    got = float(
+        probabilistic.mixture_nll(
+            means, cov, jnp.asarray(probs, jnp.float32), jnp.asarray(y, jnp.float32)
+        )
+    )
     np.testing.assert_allclose(got, -np.log(density), rtol=1e-4)
 
 
@@ -97,11 +107,14 @@ def test_reliability_and_ece_hand_worked():
   rel = probabilistic.reliability(probs, correct, probs > 0)
   np.testing.assert_array_equal(np.asarray(rel.count), [0, 1, 0, 0, 1, 0, 1, 0, 0, 2])
   np.testing.assert_array_equal(np.asarray(rel.correct), [0, 1, 0, 0, 0, 0, 1, 0, 0, 1])
-  np.testing.assert_allclose(np.asarray(rel.confidence)[[1, 4, 6, 9]], [0.1, 0.4, 0.6, 1.9],
-                             rtol=1e-6)
+  np.testing.assert_allclose(
+      np.asarray(rel.confidence)[[1, 4, 6, 9]], [0.1, 0.4, 0.6, 1.9], rtol=1e-6
+  )
   # |1 - 0.1| + |0 - 0.4| + |1 - 0.6| + |1 - 1.9| over 5 hypotheses
-  np.testing.assert_allclose(float(probabilistic.expected_calibration_error(rel)),
-                             (0.9 + 0.4 + 0.4 + 0.9) / 5, rtol=1e-6)
-  certain = probabilistic.reliability(np.ones((4, 1), np.float32), np.ones((4, 1), bool),
-                                      np.ones((4, 1), bool))
+  np.testing.assert_allclose(
+      float(probabilistic.expected_calibration_error(rel)), (0.9 + 0.4 + 0.4 + 0.9) / 5, rtol=1e-6
+  )
+  certain = probabilistic.reliability(
+      np.ones((4, 1), np.float32), np.ones((4, 1), bool), np.ones((4, 1), bool)
+  )
   assert float(probabilistic.expected_calibration_error(certain)) == 0.0

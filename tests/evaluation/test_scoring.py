@@ -20,11 +20,13 @@ def _hypothesis_fixture():
   """Three scenarios (kl, lcr, lcl), ground truth ending at (100, 0), (100, -3.5),
   (100, 3.5), two used hypothesis slots and one unused."""
   gt = np.stack([_line(100, 0), _line(100, -3.5), _line(100, 3.5)])
-  hyps = np.stack([
-      np.stack([_line(97, 4), _line(101, 0), _line(100, 0)]),  # kl: slot 1 closest (1 m)
-      np.stack([_line(102, 0), _line(100, -2.5), _line(0, 0)]),  # lcr: slot 1 (1 m)
-      np.stack([_line(104, 3.5), _line(100, -1), _line(0, 0)]),  # lcl: slot 0 (4 m)
-  ]).astype(np.float32)
+  hyps = np.stack(
+      [
+          np.stack([_line(97, 4), _line(101, 0), _line(100, 0)]),  # kl: slot 1 closest (1 m)
+          np.stack([_line(102, 0), _line(100, -2.5), _line(0, 0)]),  # lcr: slot 1 (1 m)
+          np.stack([_line(104, 3.5), _line(100, -1), _line(0, 0)]),  # lcl: slot 0 (4 m)
+      ]
+  ).astype(np.float32)
   probs = np.array([[0.7, 0.3, 0.0], [0.9, 0.1, 0.0], [0.15, 0.85, 0.0]], np.float32)
   return hyps, probs, gt, np.array([0, 1, 2])
 
@@ -46,8 +48,9 @@ def test_best_of_k_errors_by_hand():
   np.testing.assert_allclose(errors["final_lon"], [1.0, 0.0, 4.0], atol=1e-5)
   np.testing.assert_allclose(errors["final_lat"], [0.0, 1.0, 0.0], atol=1e-5)
   # minFDE + (1 - p)^2 of the closest hypothesis
-  np.testing.assert_allclose(errors["brier_min_fde"],
-                             [1.0 + 0.7**2, 1.0 + 0.9**2, 4.0 + 0.85**2], atol=1e-5)
+  np.testing.assert_allclose(
+      errors["brier_min_fde"], [1.0 + 0.7**2, 1.0 + 0.9**2, 4.0 + 0.85**2], atol=1e-5
+  )
   # lcr: slot 1 ends 1 m from the target lane centre but has p = 0.1 < 0.2, slot 0 ends
   # 3.5 m away -> miss; lcl: slot 0 (p = 0.15 < 0.2) is in the lane, slot 1 is not -> miss
   lane = errors["target_lane_hit"]
@@ -102,20 +105,36 @@ def test_delta_rank_correlation_by_hand():
 
 def _scenarios(m):
   t = np.zeros(m, np.int64)
-  return Scenarios(xi=np.zeros((m, 9, 75, 4), np.float32), mask=np.ones((m, 9, 75), bool),
-                   future=np.zeros((m, 125, 2), np.float32),
-                   controls=np.zeros((m, 125, 2), np.float32), v0=np.ones(m, np.float32),
-                   psi0=np.zeros(m, np.float32), label=t, time_to_lane_change=t - 1,
-                   recording_id=t + 7, track_id=np.arange(m) + 100, frame=t + 250)
+  return Scenarios(
+      xi=np.zeros((m, 9, 75, 4), np.float32),
+      mask=np.ones((m, 9, 75), bool),
+      future=np.zeros((m, 125, 2), np.float32),
+      controls=np.zeros((m, 125, 2), np.float32),
+      v0=np.ones(m, np.float32),
+      psi0=np.zeros(m, np.float32),
+      label=t,
+      time_to_lane_change=t - 1,
+      recording_id=t + 7,
+      track_id=np.arange(m) + 100,
+      frame=t + 250,
+  )
 
 
 def _prediction(m, k=3, n=4):
-  hyp = Hypotheses(num_modes=np.ones(m, np.int32), num_components=np.ones(m, np.int32),
-                   labels=np.zeros((m, n), np.int32), means=np.zeros((m, k, 125, 2)),
-                   probs=np.tile([1.0, 0.0, 0.0], (m, 1)),
-                   bic=np.full((m, k), np.inf))  # an infinite BIC is legitimate
-  return Prediction(controls=np.zeros((m, n, 125, 2)), trajectories=np.zeros((m, n, 125, 2)),
-                    mean=np.zeros((m, 125, 2)), hypotheses=hyp)
+  hyp = Hypotheses(
+      num_modes=np.ones(m, np.int32),
+      num_components=np.ones(m, np.int32),
+      labels=np.zeros((m, n), np.int32),
+      means=np.zeros((m, k, 125, 2)),
+      probs=np.tile([1.0, 0.0, 0.0], (m, 1)),
+      bic=np.full((m, k), np.inf),
+  )  # an infinite BIC is legitimate
+  return Prediction(
+      controls=np.zeros((m, n, 125, 2)),
+      trajectories=np.zeros((m, n, 125, 2)),
+      mean=np.zeros((m, 125, 2)),
+      hypotheses=hyp,
+  )
 
 
 def test_check_finite_names_the_scenarios():
@@ -124,19 +143,25 @@ def test_check_finite_names_the_scenarios():
   pred = _prediction(4)
   pred.trajectories[1, 2, 50, 0] = np.nan
   pred.hypotheses.means[3, 0, 10, 1] = np.inf
-  with pytest.raises(scoring.NonFinitePredictionError,
-                     match=r"cVMDx: non-finite predictions for 2 of 4 scenarios: "
-                           r"#1 \(recording 7, track 101, frame 250\), #3 \(recording 7, "
-                           r"track 103"):
+  with pytest.raises(
+      scoring.NonFinitePredictionError,
+      match=r"cVMDx: non-finite predictions for 2 of 4 scenarios: "
+      r"#1 \(recording 7, track 101, frame 250\), #3 \(recording 7, "
+      r"track 103",
+  ):
     scoring.check_finite(pred, scenarios, "cVMDx")
   assert issubclass(scoring.NonFinitePredictionError, ValueError)
 
 
 def test_markdown_tables_show_the_added_metrics():
   hyps, probs, gt, labels = _hypothesis_fixture()
-  errors = {"cvmdx_best_of_k": scoring.best_of_k_errors(hyps, probs, gt, labels),
-            "cvmdx_mean": {**scoring.single_trajectory_errors(gt + 1.0, gt),
-                           "out_of_distribution": np.array([0.0, 1.0, 0.0])}}
+  errors = {
+      "cvmdx_best_of_k": scoring.best_of_k_errors(hyps, probs, gt, labels),
+      "cvmdx_mean": {
+          **scoring.single_trajectory_errors(gt + 1.0, gt),
+          "out_of_distribution": np.array([0.0, 1.0, 0.0]),
+      },
+  }
   results = scoring.summarise(errors, labels)
   text = scoring.markdown_tables(results)
   assert "Brier-minFDE [m]" in text and "final lon [m]" in text and "target lane" in text
@@ -156,16 +181,20 @@ def test_learned_baseline_rows_by_hand():
   errors = learned_baseline.errors(hyps, probs, gt, labels)
   # kl: 0.5 (97, 4) + 0.5 (101, 0) = (99, 2); lcr: 0.9 (102, 0) + 0.1 (100, -2.5) =
   # (101.8, -0.25); lcl: 0.75 (104, 3.5) + 0.25 (100, -1) = (103, 2.375)
-  np.testing.assert_allclose(errors["mlp_mean"]["fde"],
-                             [np.hypot(1, 2), np.hypot(1.8, 3.25), np.hypot(3, 1.125)],
-                             atol=1e-4)
+  np.testing.assert_allclose(
+      errors["mlp_mean"]["fde"],
+      [np.hypot(1, 2), np.hypot(1.8, 3.25), np.hypot(3, 1.125)],
+      atol=1e-4,
+  )
   # kl: a tie goes to the first head, (97, 4)
-  np.testing.assert_allclose(errors["mlp_most_likely"]["fde"], [5.0, np.hypot(2, 3.5), 4.0],
-                             atol=1e-4)
+  np.testing.assert_allclose(
+      errors["mlp_most_likely"]["fde"], [5.0, np.hypot(2, 3.5), 4.0], atol=1e-4
+  )
   np.testing.assert_allclose(errors["mlp_best_of_k"]["fde"], [1.0, 0.0, 4.0], atol=1e-5)
   # lcl: heads 0 and 2 tie at 4 m, the first (p = 0.25) is taken
-  np.testing.assert_allclose(errors["mlp_best_of_k"]["brier_min_fde"],
-                             [1.0 + 0.5**2, 0.0 + 1.0, 4.0 + 0.75**2], atol=1e-5)
+  np.testing.assert_allclose(
+      errors["mlp_best_of_k"]["brier_min_fde"], [1.0 + 0.5**2, 0.0 + 1.0, 4.0 + 0.75**2], atol=1e-5
+  )
 
 
 def test_calibration_by_hand():
@@ -183,10 +212,16 @@ def test_calibration_by_hand():
 
 def test_markdown_tables_show_the_probabilistic_scores():
   hyps, probs, gt, labels = _hypothesis_fixture()
-  errors = {"cvmdx_best_of_k": {**scoring.best_of_k_errors(hyps, probs, gt, labels),
-                                "nll_final": np.array([1.0, 2.0, 3.0])},
-            "cvmdx_mean": {**scoring.single_trajectory_errors(gt + 1.0, gt),
-                           "energy_score": np.array([0.5, 0.5, 0.5])}}
+  errors = {
+      "cvmdx_best_of_k": {
+          **scoring.best_of_k_errors(hyps, probs, gt, labels),
+          "nll_final": np.array([1.0, 2.0, 3.0]),
+      },
+      "cvmdx_mean": {
+          **scoring.single_trajectory_errors(gt + 1.0, gt),
+          "energy_score": np.array([0.5, 0.5, 0.5]),
+      },
+  }
   results = scoring.summarise(errors, labels)
   for subset, row in scoring.calibration(hyps, probs, gt, labels)[0].items():
     results["cvmdx_best_of_k"][subset].update(row)

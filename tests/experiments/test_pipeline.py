@@ -41,7 +41,8 @@ from tests.train import toy
 # The tiny runs put a few scenarios beyond the tokeniser's training range; the warning is
 # tested in tests/inference, here it is expected.
 pytestmark = pytest.mark.filterwarnings(
-    "ignore::cvmdx_jax.inference.predictor.OutOfDistributionWarning")
+    "ignore::cvmdx_jax.inference.predictor.OutOfDistributionWarning"
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -53,17 +54,29 @@ def runs(tiny_runs):
 
 
 def test_report_has_every_method_subset_and_figure(runs, tmp_path):
-  results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-                       data_dir=runs / "data", workdir=tmp_path / "eval", max_scenarios=30,
-                       ddpm_scenarios=3)
+  results = report.run(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      workdir=tmp_path / "eval",
+      max_scenarios=30,
+      ddpm_scenarios=3,
+  )
   saved = json.loads((tmp_path / "eval" / "metrics.json").read_text())
   assert set(scoring.METHODS) <= set(saved)
   for method in scoring.METHODS:
     assert set(saved[method]) == set(scoring.SUBSETS)
     for subset in scoring.SUBSETS:
       row = saved[method][subset]
-      assert {"ade", "fde", "final_lon", "final_lat", "miss_rate", "hit_rate",
-              "num_scenarios"} <= set(row)
+      assert {
+          "ade",
+          "fde",
+          "final_lon",
+          "final_lat",
+          "miss_rate",
+          "hit_rate",
+          "num_scenarios",
+      } <= set(row)
       assert np.isfinite(row["ade"]) and np.isfinite(row["fde"])
       assert min(row["ade"], row["fde"]) >= 0
       # per scenario max(|dx|, |dy|) <= fde <= |dx| + |dy|; averaged, hypot(mean |dx|,
@@ -107,8 +120,11 @@ def test_report_has_every_method_subset_and_figure(runs, tmp_path):
   ade = np.linalg.norm(arrays["mean"] - future, axis=-1).mean(-1)
   np.testing.assert_allclose(arrays["cvmdx_mean_ade"], ade, rtol=1e-5)
   hyp_fde = np.linalg.norm(arrays["hypotheses"][:, :, -1] - future[:, None, -1], axis=-1)
-  np.testing.assert_allclose(arrays["cvmdx_best_of_k_fde"],
-                             np.where(arrays["probs"] > 0, hyp_fde, np.inf).min(-1), rtol=1e-5)
+  np.testing.assert_allclose(
+      arrays["cvmdx_best_of_k_fde"],
+      np.where(arrays["probs"] > 0, hyp_fde, np.inf).min(-1),
+      rtol=1e-5,
+  )
   for method in ("cvmdx_mean", "cvmdx_best_of_k", "cv", "ca"):
     for metric in ("ade", "fde"):
       assert np.isclose(arrays[f"{method}_{metric}"].mean(), saved[method]["all"][metric])
@@ -120,12 +136,18 @@ def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatc
   config = baseline_config.get_config("tiny")
   config.data_dir, config.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   baseline.train(BaselineRunConfig.from_config(config), tmp_path / "baseline")
-  kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-            data_dir=runs / "data", max_scenarios=12, ddpm_scenarios=0)
+  kw = dict(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      max_scenarios=12,
+      ddpm_scenarios=0,
+  )
   report.run(**kw, workdir=tmp_path / "with", baseline_dir=tmp_path / "baseline")
   report.run(**kw, workdir=tmp_path / "without")
-  with_, without = (json.loads((tmp_path / d / "metrics.json").read_text())
-                    for d in ("with", "without"))
+  with_, without = (
+      json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("with", "without")
+  )
   assert set(with_) - set(without) == set(learned_baseline.METHODS)
   for method in learned_baseline.METHODS:
     assert set(with_[method]) == set(scoring.SUBSETS)
@@ -144,8 +166,12 @@ def test_report_with_and_without_the_learned_baseline(runs, tmp_path, monkeypatc
   # a baseline trained on another tokeniser's tokens is refused before anything is written
   bundle = load_baseline(tmp_path / "baseline")
   saved = bundle.fingerprint.to_dict()
-  other = dataclasses.replace(bundle, fingerprint=ml_collections.FrozenConfigDict(
-      {**saved, "tokenizer": {**saved["tokenizer"], "step": -1}}))
+  other = dataclasses.replace(
+      bundle,
+      fingerprint=ml_collections.FrozenConfigDict(
+          {**saved, "tokenizer": {**saved["tokenizer"], "step": -1}}
+      ),
+  )
   monkeypatch.setattr(report_models, "load_baseline", lambda _: other)
   with pytest.raises(learned_baseline.IncompatibleBaselineError, match="step"):
     report.run(**kw, workdir=tmp_path / "refused", baseline_dir=tmp_path / "baseline")
@@ -158,14 +184,21 @@ def test_report_sampling_overrides_reach_the_predictor(runs, tmp_path):
   trajectory is the one a Predictor with that sampling gives."""
   scenarios = dataset.load_split(runs / "data", "test")
   scenarios = scenarios.take(balanced_indices(scenarios.label, 0, 6))
-  results = report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-                       data_dir=runs / "data", workdir=tmp_path / "eval_ddim2", max_scenarios=6,
-                       ddpm_scenarios=0, sampling_overrides={"sampler": "ddim", "steps": 2})
+  results = report.run(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      workdir=tmp_path / "eval_ddim2",
+      max_scenarios=6,
+      ddpm_scenarios=0,
+      sampling_overrides={"sampler": "ddim", "steps": 2},
+  )
   meta = json.loads((tmp_path / "eval_ddim2" / "metrics.json").read_text())["_meta"]
   assert (meta["sampling"]["sampler"], meta["sampling"]["steps"]) == ("ddim", 2)
   predictor = Predictor.load(runs / "tokenizer", runs / "diffusion")
-  predictor = dataclasses.replace(predictor, sampling=dataclasses.replace(
-      predictor.sampling, sampler="ddim", steps=2))
+  predictor = dataclasses.replace(
+      predictor, sampling=dataclasses.replace(predictor.sampling, sampler="ddim", steps=2)
+  )
   mean = predictor(scenarios, seed=0).prediction.mean
   ade = np.linalg.norm(np.asarray(mean) - scenarios.future, axis=-1).mean()
   np.testing.assert_allclose(results["cvmdx_mean"]["all"]["ade"], ade, rtol=1e-5)
@@ -174,8 +207,13 @@ def test_report_sampling_overrides_reach_the_predictor(runs, tmp_path):
 def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypatch):
   """ENOSPC while writing a figure: a fresh workdir is not left behind, an earlier
   report stays byte-identical; no temporaries either way."""
-  kwargs = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-                data_dir=runs / "data", max_scenarios=6, ddpm_scenarios=0)
+  kwargs = dict(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      max_scenarios=6,
+      ddpm_scenarios=0,
+  )
   real = atomic.writing
 
   @contextlib.contextmanager
@@ -184,8 +222,12 @@ def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypa
       if Path(path).name != "predictions_lcr.png":
         yield f
       else:
-        yield types.SimpleNamespace(write=lambda data: (_ for _ in ()).throw(
-            OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))))
+        yield types.SimpleNamespace(
+            write=lambda data: (_ for _ in ()).throw(
+                OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            )
+        )
+
   fresh, kept = tmp_path / "fresh", tmp_path / "kept"
   report.run(workdir=kept, seed=1, **kwargs)
   before = {p.name: p.read_bytes() for p in kept.iterdir()}
@@ -200,10 +242,15 @@ def test_a_full_disk_leaves_the_previous_report_or_none(runs, tmp_path, monkeypa
 
 def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatch, capsys):
   out = tmp_path / "demo"
-  results = report.run_test_and_ood(tokenizer_dir=runs / "tokenizer",
-                                    diffusion_dir=runs / "diffusion", data_dir=runs / "data",
-                                    workdir=out, ddpm_scenarios=0, ood_ddpm_scenarios=0,
-                                    max_scenarios=6)
+  results = report.run_test_and_ood(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      workdir=out,
+      ddpm_scenarios=0,
+      ood_ddpm_scenarios=0,
+      max_scenarios=6,
+  )
   assert set(results) == {"test", "test_ood"}
   test = json.loads((out / "metrics.json").read_text())
   ood = json.loads((out / "metrics_test_ood.json").read_text())
@@ -220,12 +267,20 @@ def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatc
   calls = []
   monkeypatch.setattr(report, "_split", lambda data_dir, split, *_: calls.append(split))
   monkeypatch.setattr(report.report_models, "load", lambda **_: None)
-  monkeypatch.setattr(report, "evaluate", lambda *_, **kw: types.SimpleNamespace(
-      results=kw["split"]))
+  monkeypatch.setattr(
+      report, "evaluate", lambda *_, **kw: types.SimpleNamespace(results=kw["split"])
+  )
   monkeypatch.setattr(report.files, "write", lambda *_: None)
-  assert list(report.run_test_and_ood(tokenizer_dir=None, diffusion_dir=None, data_dir="d",
-                                      workdir=out, ddpm_scenarios=0,
-                                      ood_ddpm_scenarios=0)) == ["test"]
+  assert list(
+      report.run_test_and_ood(
+          tokenizer_dir=None,
+          diffusion_dir=None,
+          data_dir="d",
+          workdir=out,
+          ddpm_scenarios=0,
+          ood_ddpm_scenarios=0,
+      )
+  ) == ["test"]
   assert calls == ["test"] and "no test_ood split" in capsys.readouterr().out
 
 
@@ -236,15 +291,23 @@ def test_non_finite_predictions_stop_the_evaluation(runs, tmp_path, monkeypatch)
     out = predict(self, scenarios, seed)
     traj = out.prediction.trajectories.copy()
     traj[1, 0, 5, 0] = np.nan
-    return dataclasses.replace(out, prediction=dataclasses.replace(out.prediction,
-                                                                  trajectories=traj))
+    return dataclasses.replace(
+        out, prediction=dataclasses.replace(out.prediction, trajectories=traj)
+    )
 
   monkeypatch.setattr(Predictor, "__call__", nan_in_scenario_1)
-  with pytest.raises(scoring.NonFinitePredictionError,
-                     match=r"non-finite predictions for 1 of 6 scenarios: #1 \(recording"):
-    report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-               data_dir=runs / "data", workdir=tmp_path / "eval", max_scenarios=6,
-               ddpm_scenarios=0)
+  with pytest.raises(
+      scoring.NonFinitePredictionError,
+      match=r"non-finite predictions for 1 of 6 scenarios: #1 \(recording",
+  ):
+    report.run(
+        tokenizer_dir=runs / "tokenizer",
+        diffusion_dir=runs / "diffusion",
+        data_dir=runs / "data",
+        workdir=tmp_path / "eval",
+        max_scenarios=6,
+        ddpm_scenarios=0,
+    )
   assert not (tmp_path / "eval").exists()
 
 
@@ -281,15 +344,18 @@ def test_load_denoiser_restores_the_ema_params_alone(runs):
   denoiser = load_denoiser(runs / "diffusion")
   # reference: the whole train state, restored with the trainer's init_fn
   config = DiffusionRunConfig.from_config(
-      json.loads((runs / "diffusion" / "config.json").read_text()))
+      json.loads((runs / "diffusion" / "config.json").read_text())
+  )
   assert config == denoiser.config
   _, init_fn, _ = diffusion.init_and_step(config, total_steps=1)
   state, fingerprint = toy.restore(runs / "diffusion", init_fn)
   jax.tree.map(np.testing.assert_array_equal, denoiser.params, state["ema_params"])
   assert denoiser.fingerprint.to_dict()["dataset_id"] == fingerprint["dataset_id"]
   x, t, q = jnp.ones((2, 125, 2)) * 0.3, jnp.array([10, 900]), jnp.array([0, denoiser.null_token])
-  np.testing.assert_array_equal(denoiser.apply(x, t, q), unet1d.apply_unet(
-      unet1d.make_graphdef(denoiser.unet), state["ema_params"], x, t, q))
+  np.testing.assert_array_equal(
+      denoiser.apply(x, t, q),
+      unet1d.apply_unet(unet1d.make_graphdef(denoiser.unet), state["ema_params"], x, t, q),
+  )
 
 
 def test_predictor_refuses_bad_scenarios(runs):
@@ -329,8 +395,7 @@ def test_ego_conditioned_run_trains_loads_and_predicts(runs, tmp_path):
   base = np.asarray(ego_motion.residual_controls(ego, diff.diffusion.residual_decay_s))
   scale = np.asarray(diff.diffusion.control_scale)
   np.testing.assert_allclose(data["ego"], ego)
-  np.testing.assert_allclose(data["x0"], np.clip((train.controls - base) / scale, -1, 1),
-                             atol=1e-6)
+  np.testing.assert_allclose(data["x0"], np.clip((train.controls - base) / scale, -1, 1), atol=1e-6)
   fixtures_runs.train_diffusion(diff, tmp_path / "ego")
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "ego")
   assert predictor.denoiser.config.diffusion.conditioning == "ego_film_residual"
@@ -361,8 +426,13 @@ def test_denoiser_of_another_feature_count_is_refused(runs, tmp_path, monkeypatc
 def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
   out = tmp_path / "eval"
   with pytest.raises(ValueError, match="validation"):
-    report.run(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-               data_dir=runs / "data", workdir=out, split="validation")
+    report.run(
+        tokenizer_dir=runs / "tokenizer",
+        diffusion_dir=runs / "diffusion",
+        data_dir=runs / "data",
+        workdir=out,
+        split="validation",
+    )
   assert not out.exists()
 
 
@@ -370,13 +440,25 @@ def test_unknown_split_raises_and_writes_nothing(runs, tmp_path):
 def test_codebook_ablation_script(runs, tmp_path):
   out = tmp_path / "ablation"
   proc = subprocess.run(
-      [sys.executable, str(REPO / "experiments" / "ablate_codebook.py"),
-       f"--data_dir={runs / 'data'}", f"--workdir={out}", "--codebook_sizes=4,6",
-       "--tokenizer_preset=tiny", "--diffusion_preset=tiny", "--max_scenarios=12"],
-      env=environ(), capture_output=True, text=True, timeout=600)
+      [
+          sys.executable,
+          str(REPO / "experiments" / "ablate_codebook.py"),
+          f"--data_dir={runs / 'data'}",
+          f"--workdir={out}",
+          "--codebook_sizes=4,6",
+          "--tokenizer_preset=tiny",
+          "--diffusion_preset=tiny",
+          "--max_scenarios=12",
+      ],
+      env=environ(),
+      capture_output=True,
+      text=True,
+      timeout=600,
+  )
   assert proc.returncode == 0, proc.stderr[-3000:]
-  rows = [line for line in (out / "ablation.md").read_text().splitlines()
-          if line.startswith("| cvq |")]
+  rows = [
+      line for line in (out / "ablation.md").read_text().splitlines() if line.startswith("| cvq |")
+  ]
   assert [r.split("|")[2].strip() for r in rows] == ["4", "6"]
   saved = json.loads((out / "ablation.json").read_text())
   assert saved["cvq_q6"]["cvmdx_mean"]["all"]["num_scenarios"] == 12
@@ -386,11 +468,20 @@ def test_codebook_ablation_script(runs, tmp_path):
 def test_codebook_health_script(runs, tmp_path):
   out = tmp_path / "health"
   proc = subprocess.run(
-      [sys.executable, str(REPO / "experiments" / "codebook_health.py"),
-       "--config=configs/tokenizer.py:tiny", f"--config.data_dir={runs / 'data'}",
-       f"--workdir={out}", "--codebook_sizes=4"],
-      cwd=REPO, env=environ(), capture_output=True, text=True,
-      timeout=600)
+      [
+          sys.executable,
+          str(REPO / "experiments" / "codebook_health.py"),
+          "--config=configs/tokenizer.py:tiny",
+          f"--config.data_dir={runs / 'data'}",
+          f"--workdir={out}",
+          "--codebook_sizes=4",
+      ],
+      cwd=REPO,
+      env=environ(),
+      capture_output=True,
+      text=True,
+      timeout=600,
+  )
   assert proc.returncode == 0, proc.stderr[-3000:]
   lines = (out / "codebook_health.md").read_text().splitlines()
   cells = {line.split("|")[2].strip(): line.split("|")[1:-1] for line in lines[2:]}
@@ -398,22 +489,35 @@ def test_codebook_health_script(runs, tmp_path):
   test = dataset.load_split(runs / "data", "test")
   cv = test.xi[:, 0, -1, None, 2:4] * (0.04 * np.arange(1, 126))[None, :, None]
   err = np.linalg.norm(cv - test.future, axis=-1)
-  np.testing.assert_allclose([float(v) for v in cells["constant velocity"][-2:]],
-                             [err.mean(), err[:, -1].mean()], atol=1e-3)
+  np.testing.assert_allclose(
+      [float(v) for v in cells["constant velocity"][-2:]],
+      [err.mean(), err[:, -1].mean()],
+      atol=1e-3,
+  )
   for kind in ("cvq", "vq"):
     assert all(np.isfinite(float(v)) for v in cells[kind][-2:])
 
 
 def test_imported_official_checkpoint_pairs_with_a_tokenizer(runs, tmp_path, monkeypatch):
   from tests.models import official_fixture
+
   checkpoint = tmp_path / "ema_0.9999_000100.pt"
-  official_fixture.write_pt(checkpoint, official_fixture.state_dict(np.random.default_rng(0), 8),
-                            monkeypatch)  # Q = 8, the tiny tokeniser's codebook size
+  official_fixture.write_pt(
+      checkpoint, official_fixture.state_dict(np.random.default_rng(0), 8), monkeypatch
+  )  # Q = 8, the tiny tokeniser's codebook size
   proc = subprocess.run(
-      [sys.executable, str(REPO / "experiments" / "import_official.py"),
-       f"--checkpoint={checkpoint}", f"--workdir={tmp_path / 'official'}",
-       f"--tokenizer_dir={runs / 'tokenizer'}"],
-      env=environ(), capture_output=True, text=True, timeout=600)
+      [
+          sys.executable,
+          str(REPO / "experiments" / "import_official.py"),
+          f"--checkpoint={checkpoint}",
+          f"--workdir={tmp_path / 'official'}",
+          f"--tokenizer_dir={runs / 'tokenizer'}",
+      ],
+      env=environ(),
+      capture_output=True,
+      text=True,
+      timeout=600,
+  )
   assert proc.returncode == 0, proc.stderr[-3000:]
   predictor = Predictor.load(runs / "tokenizer", tmp_path / "official")
   assert predictor.sampling.mode == "official" and predictor.denoiser.unet.num_tokens == 8
@@ -427,10 +531,12 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   diff = diffusion_config.get_config("tiny")
   diff.data_dir, diff.tokenizer_dir = str(runs / "data"), str(runs / "tokenizer")
   plain, num_tokens, dataset_id, meta = diffusion.training_data(
-      DiffusionRunConfig.from_config(diff))
+      DiffusionRunConfig.from_config(diff)
+  )
   assert "class_weight" not in plain  # the paper's balanced classes: no extra array
-  fingerprint = fingerprints.diffusion(DiffusionRunConfig.from_config(diff).with_tokens(num_tokens),
-                                       dataset_id, meta)
+  fingerprint = fingerprints.diffusion(
+      DiffusionRunConfig.from_config(diff).with_tokens(num_tokens), dataset_id, meta
+  )
   assert fingerprint["class_weights"] == [1.0, 1.0, 1.0]
   diff.diffusion.class_weights = (3.0, 1.0, 0.5)
   config = DiffusionRunConfig.from_config(diff).with_tokens(num_tokens)
@@ -447,8 +553,9 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
   keep = jnp.asarray(np.arange(8) % 3 != 0, jnp.float32)
   step = jax.jit(step_fn)
   _, padded = step(state, {**batch, "weight": keep}, jax.random.key(1))
-  _, weighted = step(state, {**batch, "weight": jnp.ones(8), "class_weight": keep},
-                     jax.random.key(1))
+  _, weighted = step(
+      state, {**batch, "weight": jnp.ones(8), "class_weight": keep}, jax.random.key(1)
+  )
   _, unweighted = step(state, {**batch, "weight": jnp.ones(8)}, jax.random.key(1))
   np.testing.assert_allclose(weighted["loss"], padded["loss"], rtol=1e-6)
   assert abs(float(weighted["loss"]) - float(unweighted["loss"])) > 1e-6
@@ -465,17 +572,21 @@ def _distill(teacher_dir, workdir, steps, guided_progressive=False, teacher_subs
   return distill.train(DistillRunConfig.from_config(config), workdir)
 
 
-def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_path,
-                                                                     monkeypatch):
+def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_path, monkeypatch):
   scenarios = dataset.load_split(runs / "data", "test").take(np.arange(4))
   teacher = load_denoiser(runs / "diffusion")
   _distill(runs / "diffusion", tmp_path / "guidance", 4)
   _distill(tmp_path / "guidance", tmp_path / "progressive", 2)
   _distill(runs / "diffusion", tmp_path / "direct", 2, guided_progressive=True)
-  _distill(runs / "diffusion", tmp_path / "direct_k5", 2, guided_progressive=True,
-           teacher_substeps=5)
-  for name, steps, progressive in (("guidance", 4, False), ("progressive", 2, True),
-                                   ("direct", 2, True), ("direct_k5", 2, True)):
+  _distill(
+      runs / "diffusion", tmp_path / "direct_k5", 2, guided_progressive=True, teacher_substeps=5
+  )
+  for name, steps, progressive in (
+      ("guidance", 4, False),
+      ("progressive", 2, True),
+      ("direct", 2, True),
+      ("direct_k5", 2, True),
+  ):
     predictor = Predictor.load(runs / "tokenizer", tmp_path / name)
     student = predictor.denoiser.config
     assert (predictor.sampling.sampler, predictor.sampling.steps) == ("distilled", steps)
@@ -487,12 +598,16 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
     assert a.prediction.trajectories.shape == (4, 9, 125, 2)
     assert np.isfinite(a.prediction.trajectories).all()
   # a progressive student knows only its own steps: the DDPM row needs the guided denoiser
-  common = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=tmp_path / "progressive",
-                data_dir=runs / "data", max_scenarios=6, ddpm_scenarios=3,
-                figures_per_class=1)
+  common = dict(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=tmp_path / "progressive",
+      data_dir=runs / "data",
+      max_scenarios=6,
+      ddpm_scenarios=3,
+      figures_per_class=1,
+  )
   alone = report.run(workdir=tmp_path / "alone", **common)
-  paired = report.run(workdir=tmp_path / "paired", ddpm_diffusion_dir=runs / "diffusion",
-                      **common)
+  paired = report.run(workdir=tmp_path / "paired", ddpm_diffusion_dir=runs / "diffusion", **common)
   assert "ddpm_single" not in alone and paired["ddpm_single"]["all"]["num_scenarios"] == 3
   meta = json.loads((tmp_path / "paired" / "metrics.json").read_text())["_meta"]
   assert meta["sampling"]["sampler"] == "distilled"
@@ -518,15 +633,22 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
     _distill(runs / "diffusion", tmp_path / "direct", 2)
   # the distilled sampler needs a student; a student has no guided pair for the official mode
   with pytest.raises(ValueError, match="'distilled' needs a distilled denoiser"):
-    Predictor.load(runs / "tokenizer", runs / "diffusion",
-                   dataclasses.replace(teacher.config.sampling, sampler="distilled"))
+    Predictor.load(
+        runs / "tokenizer",
+        runs / "diffusion",
+        dataclasses.replace(teacher.config.sampling, sampler="distilled"),
+    )
   with pytest.raises(ValueError, match="'official'"):
-    Predictor.load(runs / "tokenizer", tmp_path / "guidance", dataclasses.replace(
-        teacher.config.sampling, sampler="ddim", mode="official"))
+    Predictor.load(
+        runs / "tokenizer",
+        tmp_path / "guidance",
+        dataclasses.replace(teacher.config.sampling, sampler="ddim", mode="official"),
+    )
   # resuming with a teacher of other weights is refused, naming the teacher's params id
   load = load_denoiser
-  other = lambda d: dataclasses.replace(load(d), params=jax.tree.map(lambda p: p + 1e-3,
-                                                                     load(d).params))
+  other = lambda d: dataclasses.replace(
+      load(d), params=jax.tree.map(lambda p: p + 1e-3, load(d).params)
+  )
   monkeypatch.setattr(distill, "load_denoiser", other)
   with pytest.raises(checkpointing.CheckpointMismatchError, match="teacher.params_id"):
     _distill(runs / "diffusion", tmp_path / "guidance", 4)
@@ -581,6 +703,7 @@ def test_a_road_never_seen_as_a_test_only_highd_dataset(runs, tmp_path):
   "A trained model on a road it never saw") holds the same scenarios as the pipeline's
   test_ood split, and the trained runs score it like that split."""
   from cvmdx_jax.data import sumo_plan
+
   ood_ids = sumo_plan.split_ids(dataset_config.get_config("tiny").sumo)["test_ood"]
   config = dataset_config.get_config("tiny")
   config.source, config.highd_dir = "highd", str(runs / "data" / "recordings")
@@ -590,8 +713,12 @@ def test_a_road_never_seen_as_a_test_only_highd_dataset(runs, tmp_path):
   ood = dataset.load_split(runs / "data", "test_ood")
   for field in ("xi", "mask", "future", "label", "recording_id", "frame"):
     np.testing.assert_array_equal(getattr(road["test"], field), getattr(ood, field))
-  kw = dict(tokenizer_dir=runs / "tokenizer", diffusion_dir=runs / "diffusion",
-            max_scenarios=12, ddpm_scenarios=0)
+  kw = dict(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      max_scenarios=12,
+      ddpm_scenarios=0,
+  )
   on_road = report.run(**kw, data_dir=tmp_path / "road", split="test", workdir=tmp_path / "a")
   as_ood = report.run(**kw, data_dir=runs / "data", split="test_ood", workdir=tmp_path / "b")
   for method in ("cv", "cvmdx_mean", "cvmdx_best_of_k"):

@@ -21,9 +21,14 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _run(*argv):
-  return subprocess.run([sys.executable, "experiments/predict_recording.py", *argv], cwd=REPO,
-                        env=environ(JAX_PLATFORMS="cpu"), capture_output=True, text=True,
-                        timeout=600)
+  return subprocess.run(
+      [sys.executable, "experiments/predict_recording.py", *argv],
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      capture_output=True,
+      text=True,
+      timeout=600,
+  )
 
 
 @pytest.mark.slow  # ~20 s of CPU: a subprocess that compiles the predictor, and the GIF
@@ -32,10 +37,18 @@ def test_every_vehicle_of_a_window_lands_in_the_table(tiny_runs, tmp_path):
   recording_id = highd.available_recordings(data_dir)[0]
   tracks = highd.recording_paths(data_dir, recording_id)["tracks"]
   out = tmp_path / "pred.csv.gz"
-  proc = _run(f"--tokenizer_dir={tiny_runs / 'tokenizer'}",
-              f"--diffusion_dir={tiny_runs / 'diffusion'}", f"--recording={tracks}",
-              "--start=5s", "--end=6s", "--every=10", f"--out={out}", "--samples",
-              "--num_samples=4", f"--animation={tmp_path / 'scene.gif'}")
+  proc = _run(
+      f"--tokenizer_dir={tiny_runs / 'tokenizer'}",
+      f"--diffusion_dir={tiny_runs / 'diffusion'}",
+      f"--recording={tracks}",
+      "--start=5s",
+      "--end=6s",
+      "--every=10",
+      f"--out={out}",
+      "--samples",
+      "--num_samples=4",
+      f"--animation={tmp_path / 'scene.gif'}",
+  )
   assert proc.returncode == 0, proc.stderr[-3000:]
   table = pd.read_csv(out)
   assert tuple(table.columns) == recording.TABLE_COLUMNS
@@ -47,8 +60,9 @@ def test_every_vehicle_of_a_window_lands_in_the_table(tiny_runs, tmp_path):
   hyps = table[table["kind"] == "hypothesis"]
   assert set(zip(hyps["frame"], hyps["track_id"])) == expected
   first_step = hyps[np.isclose(hyps["t"], 0.04)]
-  np.testing.assert_allclose(first_step.groupby(["frame", "track_id"])["probability"].sum(),
-                             1.0, atol=1e-3)
+  np.testing.assert_allclose(
+      first_step.groupby(["frame", "track_id"])["probability"].sum(), 1.0, atol=1e-3
+  )
   samples = table[table["kind"] == "sample"]
   assert len(samples) == len(expected) * 4 * 125
   provenance = json.loads(Path(f"{out}.provenance.json").read_text())
@@ -60,13 +74,16 @@ def test_every_vehicle_of_a_window_lands_in_the_table(tiny_runs, tmp_path):
   assert "predictions_per_second" in proc.stdout and "consistency_m" in proc.stdout
 
 
-@pytest.mark.parametrize("case", [
-    "missing_column",
-    pytest.param("frame_outside", marks=pytest.mark.slow),
-    pytest.param("no_history", marks=pytest.mark.slow),
-    pytest.param("missing_file", marks=pytest.mark.slow),
-    pytest.param("bad_out", marks=pytest.mark.slow),
-])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "missing_column",
+        pytest.param("frame_outside", marks=pytest.mark.slow),
+        pytest.param("no_history", marks=pytest.mark.slow),
+        pytest.param("missing_file", marks=pytest.mark.slow),
+        pytest.param("bad_out", marks=pytest.mark.slow),
+    ],
+)
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
   write_recording(tmp_path, 1)
   tracks = highd.recording_paths(tmp_path, 1)["tracks"]
@@ -80,8 +97,13 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
   if case == "missing_column":
     pd.read_csv(tracks).drop(columns="laneId").to_csv(tracks, index=False)
   (tmp_path / "run").mkdir()
-  proc = _run(f"--tokenizer_dir={tmp_path / 'run'}", f"--diffusion_dir={tmp_path / 'run'}",
-              f"--recording={tracks}", f"--out={tmp_path / 'out' / 'pred.csv.gz'}", *args)
+  proc = _run(
+      f"--tokenizer_dir={tmp_path / 'run'}",
+      f"--diffusion_dir={tmp_path / 'run'}",
+      f"--recording={tracks}",
+      f"--out={tmp_path / 'out' / 'pred.csv.gz'}",
+      *args,
+  )
   lines = [line for line in proc.stderr.splitlines() if line.strip()]
   assert proc.returncode == 2, proc.stderr
   assert len(lines) == 1 and lines[0].startswith("predict_recording: error: "), proc.stderr

@@ -42,8 +42,12 @@ def _random_predictor() -> Predictor:
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
   tokenizer = TokenizerBundle(
-      params, uncertainty.Gaussians(params["codebook"], eye, eye, jnp.ones(q)), graphdef,
-      tok_cfg, ml_collections.FrozenConfigDict({"dataset_id": "none"}))
+      params,
+      uncertainty.Gaussians(params["codebook"], eye, eye, jnp.ones(q)),
+      graphdef,
+      tok_cfg,
+      ml_collections.FrozenConfigDict({"dataset_id": "none"}),
+  )
   cfg = diffusion_config.get_config("tiny")
   cfg.diffusion.conditioning = "ego_film_residual"
   cfg.diffusion.intent_conditioning = True
@@ -51,18 +55,27 @@ def _random_predictor() -> Predictor:
   config = DiffusionRunConfig.from_config(cfg).with_tokens(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
   denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
-  return Predictor(tokenizer, denoiser, SamplingConfig(num_samples=4, sampler="distilled",
-                                                       steps=2), chunk_size=8)
+  return Predictor(
+      tokenizer, denoiser, SamplingConfig(num_samples=4, sampler="distilled", steps=2), chunk_size=8
+  )
 
 
 def _scenarios(m: int):
   rng = np.random.default_rng(0)
   mask = (rng.random((m, constants.NUM_VEHICLES, constants.T_OBS)) > 0.2) | (
-      np.arange(constants.T_OBS) == constants.T_OBS - 1)
+      np.arange(constants.T_OBS) == constants.T_OBS - 1
+  )
   xi = rng.normal(0.0, 1.0, mask.shape + (4,)) * mask[..., None]
   zeros = np.zeros((m, constants.T_PRED, 2))
-  return from_arrays(xi=xi, mask=mask, future=zeros, controls=zeros, v0=rng.uniform(20, 35, m),
-                     psi0=rng.uniform(-0.05, 0.05, m), label=np.arange(m) % 3)
+  return from_arrays(
+      xi=xi,
+      mask=mask,
+      future=zeros,
+      controls=zeros,
+      v0=rng.uniform(20, 35, m),
+      psi0=rng.uniform(-0.05, 0.05, m),
+      label=np.arange(m) % 3,
+  )
 
 
 @pytest.fixture(scope="module")
@@ -74,9 +87,14 @@ def exported(tmp_path_factory):
 
 def _outputs(reference) -> dict:
   pred = reference.prediction
-  return {"trajectories": pred.trajectories, "controls": pred.controls, "mean": pred.mean,
-          "hypothesis_means": pred.hypotheses.means, "hypothesis_probs": pred.hypotheses.probs,
-          "delta": reference.delta}
+  return {
+      "trajectories": pred.trajectories,
+      "controls": pred.controls,
+      "mean": pred.mean,
+      "hypothesis_means": pred.hypotheses.means,
+      "hypothesis_probs": pred.hypotheses.probs,
+      "delta": reference.delta,
+  }
 
 
 def test_prediction_equals_predictor_for_two_batch_sizes(exported):
@@ -109,8 +127,14 @@ def test_denoiser_equals_apply(exported):
 def test_manifest_names_the_symbolic_batch_and_a_corrupt_file_is_refused(exported):
   predictor, out, meta = exported
   assert json.loads((out / export.MANIFEST_FILE).read_text()) == meta
-  assert [s["name"] for s in meta["predict"]["inputs"]] == ["xi", "mask", "v0", "psi0", "seed",
-                                                           "noise_ids"]
+  assert [s["name"] for s in meta["predict"]["inputs"]] == [
+      "xi",
+      "mask",
+      "v0",
+      "psi0",
+      "seed",
+      "noise_ids",
+  ]
   assert meta["predict"]["inputs"][5]["shape"] == ["b", 1]
   shapes = {s["name"]: s["shape"] for s in meta["predict"]["outputs"]}
   assert shapes["trajectories"] == ["b", 4, constants.T_PRED, 2]
@@ -146,12 +170,32 @@ assert not any(m.split(".")[0] == "cvmdx_jax" for m in sys.modules)
 def test_standalone_loader_runs_without_the_package(exported, tmp_path):
   predictor, out, _ = exported
   scenarios = _scenarios(3)
-  np.savez(tmp_path / "in.npz", xi=scenarios.xi, mask=scenarios.mask, v0=scenarios.v0,
-           psi0=scenarios.psi0)
-  cmd = [sys.executable, "-I", "-c", _ISOLATED, str(SCRIPT), f"--export_dir={out}",
-         f"--inputs={tmp_path / 'in.npz'}", f"--out={tmp_path / 'pred.npz'}", "--seed=5"]
-  done = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
-                        env=subprocess_env.environ(JAX_PLATFORMS="cpu"), cwd=tmp_path)
+  np.savez(
+      tmp_path / "in.npz",
+      xi=scenarios.xi,
+      mask=scenarios.mask,
+      v0=scenarios.v0,
+      psi0=scenarios.psi0,
+  )
+  cmd = [
+      sys.executable,
+      "-I",
+      "-c",
+      _ISOLATED,
+      str(SCRIPT),
+      f"--export_dir={out}",
+      f"--inputs={tmp_path / 'in.npz'}",
+      f"--out={tmp_path / 'pred.npz'}",
+      "--seed=5",
+  ]
+  done = subprocess.run(
+      cmd,
+      capture_output=True,
+      text=True,
+      timeout=300,
+      env=subprocess_env.environ(JAX_PLATFORMS="cpu"),
+      cwd=tmp_path,
+  )
   assert done.returncode == 0, done.stderr
   got = np.load(tmp_path / "pred.npz")
   reference = predictor(scenarios, seed=5)
@@ -159,18 +203,23 @@ def test_standalone_loader_runs_without_the_package(exported, tmp_path):
   np.testing.assert_allclose(got["hypothesis_probs"], reference.hypotheses.probs, atol=ATOL)
   # a missing field: one line, exit 2, nothing written
   np.savez(tmp_path / "bad.npz", xi=scenarios.xi, mask=scenarios.mask, v0=scenarios.v0)
-  bad = subprocess.run(cmd[:-3] + [f"--inputs={tmp_path / 'bad.npz'}",
-                                   f"--out={tmp_path / 'bad_pred.npz'}"],
-                       capture_output=True, text=True, timeout=300,
-                       env=subprocess_env.environ(JAX_PLATFORMS="cpu"), cwd=tmp_path)
+  bad = subprocess.run(
+      cmd[:-3] + [f"--inputs={tmp_path / 'bad.npz'}", f"--out={tmp_path / 'bad_pred.npz'}"],
+      capture_output=True,
+      text=True,
+      timeout=300,
+      env=subprocess_env.environ(JAX_PLATFORMS="cpu"),
+      cwd=tmp_path,
+  )
   assert bad.returncode == 2 and "field 'psi0' missing" in bad.stderr.strip().splitlines()[-1]
   assert not (tmp_path / "bad_pred.npz").exists()
 
 
 @pytest.mark.slow  # jax2onnx converts the U-Net equation by equation (~30 s)
 def test_onnx_denoiser_equals_the_package_in_onnx_runtime(tmp_path):
-  pytest.importorskip("jax2onnx", reason="optional: pip install --no-deps -r "
-                      "requirements-onnx.lock")
+  pytest.importorskip(
+      "jax2onnx", reason="optional: pip install --no-deps -r " "requirements-onnx.lock"
+  )
   ort = pytest.importorskip("onnxruntime")
   predictor = _random_predictor()
   meta = export.export(predictor, tmp_path, onnx=True)
@@ -180,10 +229,12 @@ def test_onnx_denoiser_equals_the_package_in_onnx_runtime(tmp_path):
   rng = np.random.default_rng(3)
   cond_dim = predictor.denoiser.unet.cond_dim
   for b in (4, 1):  # one model, two batch sizes
-    feed = {"x_t": rng.normal(size=(b, constants.T_PRED, 2)).astype(np.float32),
-            "t": rng.integers(0, 1000, b).astype(np.int32),
-            "q": rng.integers(0, 3, b).astype(np.int32),
-            "cond": rng.normal(size=(b, cond_dim)).astype(np.float32)}
+    feed = {
+        "x_t": rng.normal(size=(b, constants.T_PRED, 2)).astype(np.float32),
+        "t": rng.integers(0, 1000, b).astype(np.int32),
+        "q": rng.integers(0, 3, b).astype(np.int32),
+        "cond": rng.normal(size=(b, cond_dim)).astype(np.float32),
+    }
     got = session.run(None, feed)[0]
     want = jax.jit(predictor.denoiser.apply)(*feed.values())
     np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)

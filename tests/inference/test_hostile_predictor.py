@@ -8,9 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.data import dataset
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.inference.predictor import Predictor, check_student_steps
 
 
@@ -29,11 +29,14 @@ def test_chunk_size_must_be_a_positive_whole_number(loaded, chunk_size):
 
 
 @pytest.mark.slow  # the session's tiny runs
-@pytest.mark.parametrize("field, make", [
-    ("xi", lambda s: s.xi.astype(str)),
-    ("xi", lambda s: s.xi.astype(object)),
-    ("v0", lambda s: s.v0 + 1j),
-])
+@pytest.mark.parametrize(
+    "field, make",
+    [
+        ("xi", lambda s: s.xi.astype(str)),
+        ("xi", lambda s: s.xi.astype(object)),
+        ("v0", lambda s: s.v0 + 1j),
+    ],
+)
 def test_inputs_that_are_not_real_numbers_are_refused(loaded, field, make):
   predictor, scenarios = loaded
   bad = dataclasses.replace(scenarios, **{field: make(scenarios)})
@@ -45,8 +48,10 @@ def test_inputs_that_are_not_real_numbers_are_refused(loaded, field, make):
 def test_a_progressive_student_samples_only_at_its_own_steps(stage):
   fingerprint = {"distill": {"stage": stage, "steps": 2}}
   check_student_steps(SamplingConfig(sampler="distilled", steps=2), fingerprint)
-  for sampling in (SamplingConfig(sampler="distilled", steps=4),
-                   SamplingConfig(sampler="ddim", steps=2)):
+  for sampling in (
+      SamplingConfig(sampler="distilled", steps=4),
+      SamplingConfig(sampler="ddim", steps=2),
+  ):
     with pytest.raises(UserError, match=f"distilled \\({stage}\\) to sample in 2 steps"):
       check_student_steps(sampling, fingerprint)
 

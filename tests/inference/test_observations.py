@@ -25,8 +25,9 @@ def test_a_true_future_mapped_to_the_image_lands_on_the_recorded_centres(tmp_pat
 
 
 def test_to_image_by_hand():
-  obs = obs_lib.from_arrays(**{**_fields(2), "origin": [[100.0, 20.0], [50.0, 10.0]],
-                               "direction": [2, 1]})
+  obs = obs_lib.from_arrays(
+      **{**_fields(2), "origin": [[100.0, 20.0], [50.0, 10.0]], "direction": [2, 1]}
+  )
   xy = np.array([[[1.0, 0.5]], [[1.0, 0.5]]])  # 1 m ahead, 0.5 m to the left
   np.testing.assert_allclose(obs_lib.to_image(obs, xy), [[[101.0, 19.5]], [[49.0, 10.5]]])
 
@@ -43,8 +44,9 @@ def test_scenarios_project_onto_their_observed_part_without_an_image_frame():
 
 def test_validate_names_the_field():
   with pytest.raises(ValueError, match="field 'origin' holds NaN"):
-    obs_lib.from_arrays(**{**_fields(2), "origin": [[0.0, np.nan], [0.0, 0.0]],
-                           "direction": [2, 2]})
+    obs_lib.from_arrays(
+        **{**_fields(2), "origin": [[0.0, np.nan], [0.0, 0.0]], "direction": [2, 2]}
+    )
   with pytest.raises(ValueError, match="field 'xi' has shape"):
     obs_lib.from_arrays(**{**_fields(2), "xi": np.zeros((2, 9, 74, 4))})
 
@@ -54,12 +56,14 @@ def test_predictor_gives_observations_what_it_gives_their_scenarios():
   scenarios = _scenarios(5)
   from_scenarios = predictor(scenarios, seed=3)
   from_obs = predictor(obs_lib.from_scenarios(scenarios), seed=3)
-  np.testing.assert_array_equal(from_obs.prediction.trajectories,
-                                from_scenarios.prediction.trajectories)
+  np.testing.assert_array_equal(
+      from_obs.prediction.trajectories, from_scenarios.prediction.trajectories
+  )
   # noise_ids (i,) are the default draws; other ids draw other noise
   same = predictor(scenarios, seed=3, noise_ids=np.arange(5)[:, None])
-  np.testing.assert_array_equal(same.prediction.trajectories,
-                                from_scenarios.prediction.trajectories)
+  np.testing.assert_array_equal(
+      same.prediction.trajectories, from_scenarios.prediction.trajectories
+  )
   other = predictor(scenarios, seed=3, noise_ids=np.arange(5)[:, None] + 7)
   assert not np.allclose(other.prediction.controls, from_scenarios.prediction.controls)
   with pytest.raises(ValueError, match="noise_ids"):
@@ -67,5 +71,9 @@ def test_predictor_gives_observations_what_it_gives_their_scenarios():
 
 
 def _fields(m: int) -> dict:
-  return {"xi": np.zeros((m, 9, 75, 4)), "mask": np.ones((m, 9, 75), bool),
-          "v0": np.full(m, 30.0), "psi0": np.zeros(m)}
+  return {
+      "xi": np.zeros((m, 9, 75, 4)),
+      "mask": np.ones((m, 9, 75), bool),
+      "v0": np.full(m, 30.0),
+      "psi0": np.zeros(m),
+  }

@@ -23,7 +23,7 @@ from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference import predictor as predict
 from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.models import tokenizer as tokenizer_lib
-from cvmdx_jax.models import unet1d, uncertainty
+from cvmdx_jax.models import uncertainty, unet1d
 from tests.train import toy
 from tests.train.toy_job import task
 
@@ -32,6 +32,7 @@ def _counting(fn, counter: list):
   def wrapped(*args, **kwargs):
     counter.append(1)
     return fn(*args, **kwargs)
+
   return wrapped
 
 
@@ -42,8 +43,13 @@ def _random_predictor(chunk_size: int) -> predict.Predictor:
   q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
   eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
   gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = TokenizerBundle(tok_params, gaussians, tok_graphdef, tok_cfg,
-                                   ml_collections.FrozenConfigDict({"dataset_id": "none"}))
+  tokenizer = TokenizerBundle(
+      tok_params,
+      gaussians,
+      tok_graphdef,
+      tok_cfg,
+      ml_collections.FrozenConfigDict({"dataset_id": "none"}),
+  )
   config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
   graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
   denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
@@ -55,8 +61,15 @@ def _scenarios(m: int):
   rng = np.random.default_rng(0)
   xi = rng.normal(0.0, 1.0, (m, constants.NUM_VEHICLES, constants.T_OBS, 4))
   zeros = np.zeros((m, constants.T_PRED, 2))
-  return from_arrays(xi=xi, mask=np.ones(xi.shape[:3], bool), future=zeros, controls=zeros,
-                     v0=np.full(m, 30.0), psi0=np.zeros(m), label=np.arange(m) % 3)
+  return from_arrays(
+      xi=xi,
+      mask=np.ones(xi.shape[:3], bool),
+      future=zeros,
+      controls=zeros,
+      v0=np.full(m, 30.0),
+      psi0=np.zeros(m),
+      label=np.arange(m) % 3,
+  )
 
 
 def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
@@ -75,11 +88,18 @@ def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
   assert len(traces) == 2
 
 
-@pytest.mark.parametrize("name", [pytest.param("diffusion", marks=pytest.mark.slow),
-                                  "tokenizer"])
+@pytest.mark.parametrize("name", [pytest.param("diffusion", marks=pytest.mark.slow), "tokenizer"])
 def test_training_step_compiles_once(tmp_path, name):
   init_fn, step_fn, data = task(name, 12)  # batch 8: one full and one padded batch an epoch
   traces = []
-  toy.train(workdir=tmp_path, init_fn=init_fn, step_fn=_counting(step_fn, traces), data=data,
-             batch_size=8, num_epochs=2, seed=0, fingerprint={"task": name})
+  toy.train(
+      workdir=tmp_path,
+      init_fn=init_fn,
+      step_fn=_counting(step_fn, traces),
+      data=data,
+      batch_size=8,
+      num_epochs=2,
+      seed=0,
+      fingerprint={"task": name},
+  )
   assert len(traces) == 1

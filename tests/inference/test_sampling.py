@@ -8,15 +8,21 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion, ego_motion, vmm
-from cvmdx_jax.config.denoiser import DenoiserConfig, PAPER_SCALE
+from cvmdx_jax.config.denoiser import PAPER_SCALE, DenoiserConfig
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 from tests.inference.denoisers import bundle
 
-CFG = UNetConfig(num_tokens=4, base_channels=16, channel_mult=(1, 2), groups=8,
-                        attention_levels=(1,), num_heads=2)
+CFG = UNetConfig(
+    num_tokens=4,
+    base_channels=16,
+    channel_mult=(1, 2),
+    groups=8,
+    attention_levels=(1,),
+    num_heads=2,
+)
 SAMPLING = SamplingConfig(num_samples=9, steps=4)
 predict_batch = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
 
@@ -31,9 +37,16 @@ def model():
 def _predict(model, keys, b=3, config=SAMPLING, denoiser=DenoiserConfig()):
   g, p = model
   q = jnp.arange(b) % 4
-  return predict_batch(bundle(g, p, CFG, denoiser), q, jnp.linspace(0.0, 60.0, b),
-                       jnp.full(b, 30.0), jnp.zeros(b), keys,
-                       schedule=diffusion.cosine_schedule(), config=config)
+  return predict_batch(
+      bundle(g, p, CFG, denoiser),
+      q,
+      jnp.linspace(0.0, 60.0, b),
+      jnp.full(b, 30.0),
+      jnp.zeros(b),
+      keys,
+      schedule=diffusion.cosine_schedule(),
+      config=config,
+  )
 
 
 def test_shapes_and_consistency(model):
@@ -58,15 +71,26 @@ def test_deterministic_and_batch_independent(model):
   other = _predict(model, jax.random.split(jax.random.key(8), 3))
   assert not np.allclose(a.trajectories, other.trajectories)
   g, p = model
-  solo = predict_batch(bundle(g, p, CFG), jnp.array([1]), jnp.array([30.0]),
-                       jnp.array([30.0]), jnp.zeros(1), keys[1:2],
-                       schedule=diffusion.cosine_schedule(), config=SAMPLING)
+  solo = predict_batch(
+      bundle(g, p, CFG),
+      jnp.array([1]),
+      jnp.array([30.0]),
+      jnp.array([30.0]),
+      jnp.zeros(1),
+      keys[1:2],
+      schedule=diffusion.cosine_schedule(),
+      config=SAMPLING,
+  )
   np.testing.assert_allclose(solo.trajectories[0], a.trajectories[1], atol=1e-3)
 
 
 def test_ddpm_path_and_bad_config(model):
-  cfg = dataclasses.replace(SAMPLING, sampler="ddpm", num_samples=3,
-                            hypotheses=dataclasses.replace(SAMPLING.hypotheses, c_max=2))
+  cfg = dataclasses.replace(
+      SAMPLING,
+      sampler="ddpm",
+      num_samples=3,
+      hypotheses=dataclasses.replace(SAMPLING.hypotheses, c_max=2),
+  )
   out = _predict(model, jax.random.split(jax.random.key(0), 2), b=2, config=cfg)
   assert out.trajectories.shape == (2, 3, 125, 2)
   with pytest.raises(ValueError, match="sampler"):
@@ -86,9 +110,17 @@ def test_control_scale_sets_the_physical_range(model):
 
 def _predict_ego(g, p, ego, keys, config, denoiser, unet=CFG):
   b = ego.shape[0]
-  return sampling.predict_batch(bundle(g, p, unet, denoiser), jnp.arange(b) % 4,
-                                jnp.full(b, 10.0), jnp.full(b, 30.0), jnp.zeros(b), keys, ego,
-                                schedule=diffusion.cosine_schedule(), config=config)
+  return sampling.predict_batch(
+      bundle(g, p, unet, denoiser),
+      jnp.arange(b) % 4,
+      jnp.full(b, 10.0),
+      jnp.full(b, 30.0),
+      jnp.zeros(b),
+      keys,
+      ego,
+      schedule=diffusion.cosine_schedule(),
+      config=config,
+  )
 
 
 @pytest.mark.slow
@@ -100,17 +132,26 @@ def test_ego_film_reaches_the_unconditional_branch():
   keys = jax.random.split(jax.random.key(5), 2)
   # official form with w = 0 everywhere: the guided v is the unconditional branch alone
   uncond_only = dataclasses.replace(
-      SAMPLING, guidance=GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official"))
+      SAMPLING, guidance=GuidanceConfig(w_min=0.0, w_max_base=0.0, form="official")
+  )
   film = DenoiserConfig(conditioning="ego_film")
   a = _predict_ego(g, p, ego, keys, uncond_only, film, cfg)
   b = _predict_ego(g, p, ego.at[:, 0].add(2.0), keys, uncond_only, film, cfg)
   assert not np.allclose(a.controls, b.controls)
-  np.testing.assert_array_equal(a.controls,
-                                _predict_ego(g, p, ego, keys, uncond_only, film, cfg).controls)
+  np.testing.assert_array_equal(
+      a.controls, _predict_ego(g, p, ego, keys, uncond_only, film, cfg).controls
+  )
   with pytest.raises(ValueError, match="needs ego features"):
-    sampling.predict_batch(bundle(g, p, cfg, film), jnp.arange(2), jnp.zeros(2),
-                           jnp.full(2, 30.0), jnp.zeros(2), keys,
-                           schedule=diffusion.cosine_schedule(), config=uncond_only)
+    sampling.predict_batch(
+        bundle(g, p, cfg, film),
+        jnp.arange(2),
+        jnp.zeros(2),
+        jnp.full(2, 30.0),
+        jnp.zeros(2),
+        keys,
+        schedule=diffusion.cosine_schedule(),
+        config=uncond_only,
+    )
 
 
 def test_ego_residual_adds_the_extrapolated_controls(model):

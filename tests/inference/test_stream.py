@@ -24,8 +24,13 @@ def _frame_input(rec, frame):
   rows = np.flatnonzero(rec.frame == frame)
   sign = np.where(rec.direction[rows] == 2, 1.0, -1.0)[:, None]
   flip = np.concatenate([sign, -sign], -1)
-  return (rec.track_id[rows], frames.image_centre(rec, rows), rec.vel[rows] * flip,
-          rec.direction[rows], rec.neighbours[rows])
+  return (
+      rec.track_id[rows],
+      frames.image_centre(rec, rows),
+      rec.vel[rows] * flip,
+      rec.direction[rows],
+      rec.neighbours[rows],
+  )
 
 
 def test_stream_observations_equal_the_recordings(rec):
@@ -39,8 +44,17 @@ def test_stream_observations_equal_the_recordings(rec):
     if expected is None:
       assert len(got) == 0
       continue
-    for name in ("xi", "mask", "v0", "psi0", "track_id", "frame", "recording_id", "origin",
-                 "direction"):
+    for name in (
+        "xi",
+        "mask",
+        "v0",
+        "psi0",
+        "track_id",
+        "frame",
+        "recording_id",
+        "origin",
+        "direction",
+    ):
       np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), name)
 
 
@@ -54,8 +68,9 @@ def test_stream_predictions_equal_a_whole_recordings(rec):
     if out is not None:
       parts.append(out)
   for name in ("frame", "track_id", "means", "probs"):
-    np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in parts]),
-                                  getattr(whole, name), name)
+    np.testing.assert_array_equal(
+        np.concatenate([getattr(p, name) for p in parts]), getattr(whole, name), name
+    )
   # tracks 1-4 at the 7 frames, track 5 (from frame 100) from frame 174 on: 180, 205, 230
   assert summary["predictions"] == len(whole) == 4 * 7 + 3 and summary["vehicles"] == 5
   assert summary["consistency_m"]["pairs"] == 31 - 5  # each track's first frame has none
@@ -66,8 +81,9 @@ def test_a_vehicle_that_disappears_is_dropped_and_a_gap_restarts(rec):
   for frame in range(1, 80):
     ids, centre, vel, direction, nbr = _frame_input(rec, frame)
     keep = ids != 2 if frame == 60 else np.ones(len(ids), bool)  # 2 missing once
-    history = stream.update(history, frame, ids[keep], centre[keep], vel[keep],
-                            direction[keep], nbr[keep])
+    history = stream.update(
+        history, frame, ids[keep], centre[keep], vel[keep], direction[keep], nbr[keep]
+    )
   assert history.track_id[stream.ready(history)].tolist() == [1, 3, 4]
   history = stream.update(history, 81, *_frame_input(rec, 81))  # frame 80 skipped
   assert not history.valid[:, :-1].any()
@@ -79,7 +95,13 @@ def test_temporal_consistency_by_hand():
   means[1, 0, :, 0] = np.arange(125) + 5 + 0.5  # frame 5: the same path, 0.5 m ahead
   means[2, 0, :, 0] = 1000.0  # another track
   preds = recording.VehiclePredictions(
-      recording_id=np.zeros(3, int), frame=np.array([0, 5, 5]), track_id=np.array([1, 1, 2]),
-      means=means, probs=np.ones((3, 1)), samples=None, out_of_distribution=np.zeros(3, bool))
+      recording_id=np.zeros(3, int),
+      frame=np.array([0, 5, 5]),
+      track_id=np.array([1, 1, 2]),
+      means=means,
+      probs=np.ones((3, 1)),
+      samples=None,
+      out_of_distribution=np.zeros(3, bool),
+  )
   np.testing.assert_allclose(recording.temporal_consistency(preds, 5), [0.5])
   assert len(recording.temporal_consistency(preds, 10)) == 0

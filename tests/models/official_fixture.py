@@ -108,7 +108,7 @@ def forward(sd, x, t, y, *, mult=(1, 2), nrb=1, attn_levels=(1,), heads=4, left=
     k = w.shape[2]
     hp = np.pad(h, ((0, 0), (0, 0), ((k - 1) // 2, (k - 1) // 2)))
     n_out = (hp.shape[2] - k) // stride + 1
-    taps = np.stack([hp[:, :, j:j + stride * (n_out - 1) + 1:stride] for j in range(k)], -1)
+    taps = np.stack([hp[:, :, j : j + stride * (n_out - 1) + 1 : stride] for j in range(k)], -1)
     return np.einsum("binj,oij->bon", taps, w) + p[f"{name}.bias"][:, None]
 
   def lin(h, name):
@@ -140,8 +140,10 @@ def forward(sd, x, t, y, *, mult=(1, 2), nrb=1, attn_levels=(1,), heads=4, left=
   emb = lin(_silu(lin(temb, "time_embed.0")), "time_embed.2") + p["label_emb.weight"][y]
   length = x.shape[2]
   left = (PADDED - length) // 2 if left is None else left  # official: 1 left, 2 right
-  h = conv(np.pad(x.astype(np.float64), ((0, 0), (0, 0), (left, PADDED - length - left))),
-           "input_blocks.0.0")
+  h = conv(
+      np.pad(x.astype(np.float64), ((0, 0), (0, 0), (left, PADDED - length - left))),
+      "input_blocks.0.0",
+  )
   hs, i = [h], 1
   for level in range(len(mult)):
     for _ in range(nrb):
@@ -167,7 +169,7 @@ def forward(sd, x, t, y, *, mult=(1, 2), nrb=1, attn_levels=(1,), heads=4, left=
         h = conv(np.repeat(h, 2, axis=2), f"output_blocks.{o}.{k}.conv")
       o += 1
   out = conv(_silu(gn(h, "out.0")), "out.2")
-  return out[:, :, left:left + length]
+  return out[:, :, left : left + length]
 
 
 _STORAGE = {np.dtype(np.float32): "FloatStorage", np.dtype(np.int64): "LongStorage"}
@@ -180,14 +182,22 @@ class _Tensor:
     self.key, self.array = key, array
     self.offset = offset
     self.size = array.shape if size is None else size
-    self.stride = (tuple(s // array.itemsize for s in array.strides) if stride is None
-                   else stride)
+    self.stride = tuple(s // array.itemsize for s in array.strides) if stride is None else stride
 
   def __reduce__(self):
     import torch._utils  # the stand-in module installed by `write_pt`
-    return (torch._utils._rebuild_tensor_v2,
-            (_StorageRef(self.key, self.array), self.offset, tuple(self.size),
-             tuple(self.stride), False, {}))
+
+    return (
+        torch._utils._rebuild_tensor_v2,
+        (
+            _StorageRef(self.key, self.array),
+            self.offset,
+            tuple(self.size),
+            tuple(self.stride),
+            False,
+            {},
+        ),
+    )
 
 
 class _StorageRef:
@@ -235,8 +245,7 @@ def pickled(obj, monkeypatch) -> tuple[bytes, dict]:
     def persistent_id(self, o):
       if isinstance(o, _StorageRef):
         storages[o.key] = o.array
-        return ("storage", getattr(torch_mod, _STORAGE[o.array.dtype]), o.key, "cpu",
-                o.array.size)
+        return ("storage", getattr(torch_mod, _STORAGE[o.array.dtype]), o.key, "cpu", o.array.size)
       return None
 
   buf = io.BytesIO()
@@ -260,19 +269,44 @@ def write_pt(path, obj, monkeypatch, name="archive"):
 
 
 def _local_header(name: str, payload: bytes, method: int, size: int, crc: int) -> bytes:
-  return struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0, crc, len(payload), size,
-                     len(name), 0) + name.encode()
+  return (
+      struct.pack(
+          "<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0, crc, len(payload), size, len(name), 0
+      )
+      + name.encode()
+  )
 
 
 def write_zip(path, blob: bytes, records: list[tuple]):
   """A zip file of `blob` (local headers and payloads) and a central directory of
   `records` (name, method, local header offset, stored length, size, crc)."""
   central = b"".join(
-      struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, method, 0, 0, crc, stored, size,
-                  len(name), 0, 0, 0, 0, 0, offset) + name.encode()
-      for name, method, offset, stored, size, crc in records)
-  end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(records), len(records), len(central),
-                    len(blob), 0)
+      struct.pack(
+          "<IHHHHHHIIIHHHHHII",
+          0x02014B50,
+          20,
+          20,
+          0,
+          method,
+          0,
+          0,
+          crc,
+          stored,
+          size,
+          len(name),
+          0,
+          0,
+          0,
+          0,
+          0,
+          offset,
+      )
+      + name.encode()
+      for name, method, offset, stored, size, crc in records
+  )
+  end = struct.pack(
+      "<IHHHHIIH", 0x06054B50, 0, 0, len(records), len(records), len(central), len(blob), 0
+  )
   path.write_bytes(blob + central + end)
 
 
@@ -294,9 +328,19 @@ def write_deflate_bomb(path, pkl: bytes, name: str, size: int):
   crc = 0
   for _ in range(size // chunk):
     crc = zlib.crc32(bytes(chunk), crc)
-  write_entries(path, [(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl)),
-                       (f"{name}/data/0", block * (size // chunk) + b"\x03\x00",  # final block
-                        zipfile.ZIP_DEFLATED, size, crc)])
+  write_entries(
+      path,
+      [
+          (f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl)),
+          (
+              f"{name}/data/0",
+              block * (size // chunk) + b"\x03\x00",  # final block
+              zipfile.ZIP_DEFLATED,
+              size,
+              crc,
+          ),
+      ],
+  )
 
 
 def write_nested_entries(path, pkl: bytes, name: str, payload: bytes, depth: int):
@@ -304,8 +348,17 @@ def write_nested_entries(path, pkl: bytes, name: str, payload: bytes, depth: int
   entry's payload holding the next entry (header and payload): entries sharing bytes."""
   inner = b""
   for key in reversed(range(depth)):
-    inner = (_local_header(f"{name}/data/{key}", inner + payload, zipfile.ZIP_STORED,
-                           len(inner + payload), zlib.crc32(inner + payload)) + inner + payload)
+    inner = (
+        _local_header(
+            f"{name}/data/{key}",
+            inner + payload,
+            zipfile.ZIP_STORED,
+            len(inner + payload),
+            zlib.crc32(inner + payload),
+        )
+        + inner
+        + payload
+    )
   head = _local_header(f"{name}/data.pkl", pkl, zipfile.ZIP_STORED, len(pkl), zlib.crc32(pkl))
   records = [(f"{name}/data.pkl", 0, 0, len(pkl), len(pkl), zlib.crc32(pkl))]
   offset, rest = len(head + pkl), inner
@@ -313,5 +366,5 @@ def write_nested_entries(path, pkl: bytes, name: str, payload: bytes, depth: int
     header = 30 + len(f"{name}/data/{key}")
     body = rest[header:]
     records.append((f"{name}/data/{key}", 0, offset, len(body), len(body), zlib.crc32(body)))
-    offset, rest = offset + header, body[:len(body) - len(payload)]
+    offset, rest = offset + header, body[: len(body) - len(payload)]
   write_zip(path, head + pkl + inner, records)

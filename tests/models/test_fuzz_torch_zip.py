@@ -28,12 +28,17 @@ NAME = "archive"
 
 def _clean():
   base = np.arange(24, dtype=np.float32)
-  return {"model": collections.OrderedDict(
-              [("conv.weight", np.linspace(-1, 1, 12, dtype=np.float32).reshape(4, 1, 3)),
-               ("conv.bias", np.array([0.5, -2.0, 3.0, 1e-3], np.float32)),
-               ("steps", np.array([3, -1, 2**40], np.int64))]),
-          "view": fx._Tensor("v", base, offset=1, size=(2, 3), stride=(1, 4)),
-          "meta": {"step": 5, "names": ["a", "b"], "pair": (1.5, None)}}
+  return {
+      "model": collections.OrderedDict(
+          [
+              ("conv.weight", np.linspace(-1, 1, 12, dtype=np.float32).reshape(4, 1, 3)),
+              ("conv.bias", np.array([0.5, -2.0, 3.0, 1e-3], np.float32)),
+              ("steps", np.array([3, -1, 2**40], np.int64)),
+          ]
+      ),
+      "view": fx._Tensor("v", base, offset=1, size=(2, 3), stride=(1, 4)),
+      "meta": {"step": 5, "names": ["a", "b"], "pair": (1.5, None)},
+  }
 
 
 def _expected(obj):
@@ -58,8 +63,12 @@ def _gather(base, offset, size, stride):
 
 def _equal(got, want) -> bool:
   if isinstance(want, np.ndarray):
-    return (isinstance(got, np.ndarray) and got.dtype == want.dtype and got.shape == want.shape
-            and np.array_equal(got, want))
+    return (
+        isinstance(got, np.ndarray)
+        and got.dtype == want.dtype
+        and got.shape == want.shape
+        and np.array_equal(got, want)
+    )
   if type(got) is not type(want):
     return False
   if isinstance(want, dict):
@@ -95,7 +104,7 @@ def _central_records(data: bytes) -> list[int]:
 def _mutate_bytes(rng, data: bytes, kind: str) -> bytes:
   data = bytearray(data)
   if kind == "truncate":
-    return bytes(data[:int(rng.integers(len(data)))])
+    return bytes(data[: int(rng.integers(len(data)))])
   if kind == "flip":
     for _ in range(int(rng.integers(1, 5))):
       data[int(rng.integers(len(data)))] ^= 1 << int(rng.integers(8))
@@ -106,7 +115,7 @@ def _mutate_bytes(rng, data: bytes, kind: str) -> bytes:
   at = records[int(rng.integers(len(records)))]
   field, fmt = [(10, "<H"), (20, "<I"), (24, "<I"), (42, "<I"), (28, "<H")][int(rng.integers(5))]
   value = values[int(rng.integers(len(values)))] % (2**16 if fmt == "<H" else 2**32)
-  data[at + field:at + field + struct.calcsize(fmt)] = struct.pack(fmt, value)
+  data[at + field : at + field + struct.calcsize(fmt)] = struct.pack(fmt, value)
   return bytes(data)
 
 
@@ -119,7 +128,7 @@ def _mutate_pickle(rng, pkl: bytes) -> bytes:
   elif kind == 1:
     pkl[at:at] = bytes([OPCODES[int(rng.integers(len(OPCODES)))]])
   elif kind == 2:
-    del pkl[at:at + int(rng.integers(1, 9))]
+    del pkl[at : at + int(rng.integers(1, 9))]
   else:
     pkl[at] = int(rng.integers(256))
   return bytes(pkl)
@@ -133,12 +142,15 @@ def _random_view(rng):
   if rng.random() < 0.4:  # a slice / transpose of a contiguous array: must be read
     shape = tuple(int(n) for n in rng.integers(1, 5, size=int(rng.integers(1, 4))))
     full = np.arange(math.prod(shape)).reshape(shape).transpose(rng.permutation(len(shape)))
-    view = full[tuple(slice(int(rng.integers(0, n)), None, int(rng.integers(1, 3)))
-                      for n in full.shape)]
+    view = full[
+        tuple(slice(int(rng.integers(0, n)), None, int(rng.integers(1, 3))) for n in full.shape)
+    ]
     base = rng.normal(size=full.size).astype(np.float32)
     offset, stride = int(view.flat[0]), tuple(s // full.itemsize for s in view.strides)
-    return (fx._Tensor("t", base, offset, view.shape, stride),
-            (READ, _gather(base, offset, view.shape, stride)))
+    return (
+        fx._Tensor("t", base, offset, view.shape, stride),
+        (READ, _gather(base, offset, view.shape, stride)),
+    )
   ndim = int(rng.integers(0, 4))
   size = tuple(int(n) for n in rng.integers(0, 6, size=ndim))
   stride = tuple(int(s) for s in rng.integers(-2, 9, size=ndim))

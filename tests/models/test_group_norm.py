@@ -9,8 +9,13 @@ import pytest
 from flax import nnx
 
 from cvmdx_jax.models import layers
-from cvmdx_jax.models.group_norm import (GroupNorm, group_norm, group_norm_silu,
-                                        plain_group_norm, plain_group_norm_silu)
+from cvmdx_jax.models.group_norm import (
+    GroupNorm,
+    group_norm,
+    group_norm_silu,
+    plain_group_norm,
+    plain_group_norm_silu,
+)
 
 
 def _reference(x, scale, bias, groups, eps):
@@ -30,13 +35,15 @@ def test_forward_and_gradients_match_the_reference(shape, groups, norm):
   scale = jax.random.normal(keys[1], shape[-1:])
   bias = jax.random.normal(keys[2], shape[-1:])
   weight = jax.random.normal(keys[3], shape)
-  np.testing.assert_allclose(norm(x, scale, bias, groups, 1e-5),
-                             _reference(x, scale, bias, groups, 1e-5), atol=2e-5)
+  np.testing.assert_allclose(
+      norm(x, scale, bias, groups, 1e-5), _reference(x, scale, bias, groups, 1e-5), atol=2e-5
+  )
   # a non-linear read-out, so that every term of the backward pass matters
   ours = lambda *a: jnp.sum(weight * jnp.sin(norm(*a, groups, 1e-5)))
   ref = lambda *a: jnp.sum(weight * jnp.sin(_reference(*a, groups, 1e-5)))
-  for g_ours, g_ref in zip(jax.grad(ours, (0, 1, 2))(x, scale, bias),
-                           jax.grad(ref, (0, 1, 2))(x, scale, bias)):
+  for g_ours, g_ref in zip(
+      jax.grad(ours, (0, 1, 2))(x, scale, bias), jax.grad(ref, (0, 1, 2))(x, scale, bias)
+  ):
     np.testing.assert_allclose(g_ours, g_ref, atol=5e-5 * float(jnp.abs(g_ref).max()))
 
 
@@ -63,11 +70,22 @@ def test_upsample_equals_repeat_then_convolve():
   graphdef, params = nnx.split(up, nnx.Param)
   params = nnx.to_pure_dict(params)
   ours = lambda p, x: jnp.sum(jnp.cos(nnx.merge(graphdef, p)(x)))
-  ref = lambda p, x: jnp.sum(jnp.cos(jax.lax.conv_general_dilated(
-      jnp.repeat(x, 2, axis=1), p["conv"]["kernel"], (1,), ((1, 1),),
-      dimension_numbers=("NWC", "WIO", "NWC")) + p["conv"]["bias"]))
-  for a, b in zip(jax.tree.leaves(jax.grad(ours, (0, 1))(params, x)),
-                  jax.tree.leaves(jax.grad(ref, (0, 1))(params, x))):
+  ref = lambda p, x: jnp.sum(
+      jnp.cos(
+          jax.lax.conv_general_dilated(
+              jnp.repeat(x, 2, axis=1),
+              p["conv"]["kernel"],
+              (1,),
+              ((1, 1),),
+              dimension_numbers=("NWC", "WIO", "NWC"),
+          )
+          + p["conv"]["bias"]
+      )
+  )
+  for a, b in zip(
+      jax.tree.leaves(jax.grad(ours, (0, 1))(params, x)),
+      jax.tree.leaves(jax.grad(ref, (0, 1))(params, x)),
+  ):
     np.testing.assert_allclose(a, b, atol=1e-4)
 
 
@@ -79,7 +97,8 @@ def test_fused_silu_with_modulation_matches_the_reference(norm_silu):
   m, c = 1.0 + 0.3 * jax.random.normal(keys[3], (3, 16)), jax.random.normal(keys[4], (3, 16))
   weight = jax.random.normal(keys[5], x.shape)
   ref_out = lambda x, s, b, m, c: jax.nn.silu(
-      _reference(x, s, b, 4, 1e-5) * m[:, None] + c[:, None])
+      _reference(x, s, b, 4, 1e-5) * m[:, None] + c[:, None]
+  )
   ours_out = lambda x, s, b, m, c: norm_silu(x, s, b, m, c, 4, 1e-5)
   args = (x, scale, bias, m, c)
   np.testing.assert_allclose(ours_out(*args), ref_out(*args), atol=2e-5)
@@ -89,5 +108,4 @@ def test_fused_silu_with_modulation_matches_the_reference(norm_silu):
     np.testing.assert_allclose(g_ours, g_ref, atol=5e-5 * float(jnp.abs(g_ref).max()))
   # the module's default modulation is none
   norm = GroupNorm(16, 4, 1e-5)
-  np.testing.assert_allclose(norm.silu(x), jax.nn.silu(_reference(x, 1.0, 0.0, 4, 1e-5)),
-                             atol=2e-5)
+  np.testing.assert_allclose(norm.silu(x), jax.nn.silu(_reference(x, 1.0, 0.0, 4, 1e-5)), atol=2e-5)

@@ -19,11 +19,13 @@ CFG = MultipleChoiceConfig(num_tokens=5, num_hypotheses=3, token_dim=4, hidden=(
 
 def _inputs(b=4, seed=0):
   rng = np.random.default_rng(seed)
-  return {"q": jnp.asarray(rng.integers(0, 5, b), jnp.int32),
-          "delta": jnp.asarray(rng.uniform(0, 9, b), jnp.float32),
-          "ego": jnp.asarray(rng.normal(size=(b, ego_motion.NUM_FEATURES)), jnp.float32),
-          "v0": jnp.asarray(rng.uniform(20, 30, b), jnp.float32),
-          "psi0": jnp.zeros(b, jnp.float32)}
+  return {
+      "q": jnp.asarray(rng.integers(0, 5, b), jnp.int32),
+      "delta": jnp.asarray(rng.uniform(0, 9, b), jnp.float32),
+      "ego": jnp.asarray(rng.normal(size=(b, ego_motion.NUM_FEATURES)), jnp.float32),
+      "v0": jnp.asarray(rng.uniform(20, 30, b), jnp.float32),
+      "psi0": jnp.zeros(b, jnp.float32),
+  }
 
 
 def _line(dx, dy):
@@ -51,8 +53,7 @@ def test_zero_output_is_the_decayed_constant_acceleration_closed_form():
   ego = np.zeros((2, ego_motion.NUM_FEATURES), np.float32)
   ego[1, 1] = 0.5  # feature 1 = a_x / (1 m/s^2)
   v0 = np.array([25.0, 20.0], np.float32)
-  traj = mc.rollout(cfg, jnp.zeros((2, 3, constants.T_PRED, 2)), jnp.asarray(ego), v0,
-                    jnp.zeros(2))
+  traj = mc.rollout(cfg, jnp.zeros((2, 3, constants.T_PRED, 2)), jnp.asarray(ego), v0, jnp.zeros(2))
   for i, a in enumerate((0.0, 0.5)):
     for k in range(3):
       np.testing.assert_allclose(traj[i, k, :, 0], v0[i] * T + a * T**2 / 2, rtol=1e-5)
@@ -61,16 +62,23 @@ def test_zero_output_is_the_decayed_constant_acceleration_closed_form():
 
 def test_wta_picks_the_closest_head_and_matches_hand_computed_loss():
   gt = np.stack([_line(100, 0), _line(100, 3.5)])
-  heads = np.stack([np.stack([_line(100, 3.5), _line(102, 0), _line(100, -3.5)]),
-                    np.stack([_line(100, 3.0), _line(100, 0), _line(90, 3.5)])])
+  heads = np.stack(
+      [
+          np.stack([_line(100, 3.5), _line(102, 0), _line(100, -3.5)]),
+          np.stack([_line(100, 3.0), _line(100, 0), _line(90, 3.5)]),
+      ]
+  )
   logits = np.array([[0.0, 1.0, -1.0], [2.0, 0.0, 0.0]], np.float32)
-  loss, parts = baseline.wta_loss(jnp.asarray(heads), jnp.asarray(logits), jnp.asarray(gt),
-                                  jnp.ones(2), cls_weight=0.5)
+  loss, parts = baseline.wta_loss(
+      jnp.asarray(heads), jnp.asarray(logits), jnp.asarray(gt), jnp.ones(2), cls_weight=0.5
+  )
   assert parts["winner"].tolist() == [1, 0]
   # ADE of a line whose end is off by (dx, dy): mean of |(dx, dy)| s over s in [0, 1]
   ade = [np.hypot(2, 0) / 2, np.hypot(0, 0.5) / 2]
-  ce = [np.log(np.exp(logits[0]).sum()) - logits[0, 1],
-        np.log(np.exp(logits[1]).sum()) - logits[1, 0]]
+  ce = [
+      np.log(np.exp(logits[0]).sum()) - logits[0, 1],
+      np.log(np.exp(logits[1]).sum()) - logits[1, 0],
+  ]
   np.testing.assert_allclose(parts["wta_ade"], np.mean(ade), rtol=1e-4)
   np.testing.assert_allclose(parts["cross_entropy"], np.mean(ce), rtol=1e-5)
   np.testing.assert_allclose(loss, np.mean(ade) + 0.5 * np.mean(ce), rtol=1e-4)
@@ -81,7 +89,7 @@ def test_padding_rows_do_not_count():
   heads = jnp.asarray(rng.normal(size=(5, 3, constants.T_PRED, 2)), jnp.float32)
   logits = jnp.asarray(rng.normal(size=(5, 3)), jnp.float32)
   gt = jnp.asarray(rng.normal(size=(5, constants.T_PRED, 2)), jnp.float32)
-  padded, _ = baseline.wta_loss(heads, logits, gt, jnp.asarray([1, 1, 1, 0, 0.]), 1.0)
+  padded, _ = baseline.wta_loss(heads, logits, gt, jnp.asarray([1, 1, 1, 0, 0.0]), 1.0)
   sliced, _ = baseline.wta_loss(heads[:3], logits[:3], gt[:3], jnp.ones(3), 1.0)
   np.testing.assert_allclose(padded, sliced, rtol=1e-6)
 

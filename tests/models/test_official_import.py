@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.inference.bundles import load_denoiser
-from cvmdx_jax.models import torch_zip
-from cvmdx_jax.models import official_import, unet1d
+from cvmdx_jax.models import official_import, torch_zip, unet1d
 from cvmdx_jax.models.official_state import OfficialCheckpointError, unet_config, unwrap_state_dict
 from cvmdx_jax.storage import locking
 from tests.models import official_fixture as fx
@@ -33,11 +32,13 @@ def official():
 
 def test_reader_rebuilds_tensors_and_containers(tmp_path, monkeypatch):
   base = np.arange(12, dtype=np.float32)
-  obj = {"dense": np.arange(6, dtype=np.float32).reshape(2, 3),
-         "ints": np.array([3, -1, 2**40], np.int64),
-         # a strided view: storage 0..11, offset 1, size (2, 3), stride (1, 4)
-         "view": fx._Tensor("v", base, offset=1, size=(2, 3), stride=(1, 4)),
-         "meta": {"step": 5, "names": ["a", "b"]}}
+  obj = {
+      "dense": np.arange(6, dtype=np.float32).reshape(2, 3),
+      "ints": np.array([3, -1, 2**40], np.int64),
+      # a strided view: storage 0..11, offset 1, size (2, 3), stride (1, 4)
+      "view": fx._Tensor("v", base, offset=1, size=(2, 3), stride=(1, 4)),
+      "meta": {"step": 5, "names": ["a", "b"]},
+  }
   path = tmp_path / "x.pt"
   fx.write_pt(path, obj, monkeypatch, name="x")
   got = torch_zip.read_pt(path)
@@ -49,6 +50,7 @@ def test_reader_rebuilds_tensors_and_containers(tmp_path, monkeypatch):
 
 def test_reader_refuses_code_and_other_formats(tmp_path):
   class Evil:  # a pickle that would call os.getpid() when loaded
+
     def __reduce__(self):
       return (os.getpid, ())
 
@@ -65,9 +67,17 @@ def test_reader_refuses_code_and_other_formats(tmp_path):
 
 def test_config_is_read_from_the_state_dict(official):
   cfg = unet_config(official)
-  assert (cfg.num_tokens, cfg.null_token, cfg.base_channels, cfg.channel_mult,
-          cfg.num_res_blocks, cfg.emb_mult, cfg.attention_levels, cfg.num_heads,
-          cfg.groups) == (Q, Q, 32, (1, 2), 1, 2, (1,), 4, 32)
+  assert (
+      cfg.num_tokens,
+      cfg.null_token,
+      cfg.base_channels,
+      cfg.channel_mult,
+      cfg.num_res_blocks,
+      cfg.emb_mult,
+      cfg.attention_levels,
+      cfg.num_heads,
+      cfg.groups,
+  ) == (Q, Q, 32, (1, 2), 1, 2, (1,), 4, 32)
 
 
 def test_imported_unet_equals_the_official_forward(official, tmp_path, monkeypatch):
@@ -80,8 +90,9 @@ def test_imported_unet_equals_the_official_forward(official, tmp_path, monkeypat
   t = np.repeat([0, 37, 500, 999], 2)
   y = np.array([Q, 3] * 4)  # null label and a real one at each t
   want = fx.forward(official, x, t, y)
-  got = unet1d.apply_unet(graphdef, params, jnp.asarray(x.transpose(0, 2, 1)), jnp.asarray(t),
-                          jnp.asarray(y))
+  got = unet1d.apply_unet(
+      graphdef, params, jnp.asarray(x.transpose(0, 2, 1)), jnp.asarray(t), jnp.asarray(y)
+  )
   assert np.abs(want).max() > 0.3
   np.testing.assert_allclose(np.asarray(got).transpose(0, 2, 1), want, atol=1e-4)
   # the check can fail: the same weights padded on the right only give other outputs
@@ -116,8 +127,12 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
   workdir = tmp_path / "run"
   # an import killed -9: a checkpoint step and no config.json (the new one would collide)
   (workdir / "checkpoints" / "1").mkdir(parents=True)
-  cmd = [sys.executable, "experiments/import_official.py", f"--checkpoint={path}",
-         f"--workdir={workdir}"]
+  cmd = [
+      sys.executable,
+      "experiments/import_official.py",
+      f"--checkpoint={path}",
+      f"--workdir={workdir}",
+  ]
   env = {"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
   done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
@@ -135,8 +150,7 @@ def test_import_script_writes_a_loadable_run(official, tmp_path, monkeypatch):
 def _import(args, workdir, timeout=300):
   cmd = [sys.executable, "experiments/import_official.py", *args, f"--workdir={workdir}"]
   env = {"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"}
-  return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True,
-                        timeout=timeout)
+  return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
 
 
 def _one_line_error(done, *parts):
@@ -146,21 +160,34 @@ def _one_line_error(done, *parts):
   assert all(p in lines[0] for p in parts), lines[0]
 
 
-@pytest.mark.parametrize("name, value, message", [
-    ("input_blocks.0.0.weight", np.zeros((0, 2, 3), np.float32), "has shape (0, 2, 3)"),
-    ("label_emb.weight", np.array(1.0, np.float32), "has shape ()"),
-    ("time_embed.0.weight", np.zeros(64, np.float32), "has shape (64,)"),
-    ("input_blocks.1.0.in_layers.2.weight", np.zeros((32, 96), np.float32),
-     "has shape (32, 96); its layer needs 3 dimensions"),
-    ("input_blocks.1.0.out_layers.3.weight", np.zeros((32, 32, 5), np.float32),
-     "has shape (32, 32, 5); the architecture read from the file expects (32, 32, 3)"),
-    ("middle_block.1.qkv.weight", np.zeros((190, 64, 1), np.float32),
-     "has shape (190, 64, 1); an attention block of 64 channels has (192, 64, 1)"),
-    ("out.0.bias", np.full(32, np.nan, np.float32), "out.0.bias holds NaN or Inf"),
-    ("label_emb.weight", np.full((8, 64), np.inf, np.float32), "label_emb.weight holds NaN"),
-])
-def test_malformed_parameters_name_file_and_parameter(official, tmp_path, monkeypatch, name,
-                                                      value, message):
+@pytest.mark.parametrize(
+    "name, value, message",
+    [
+        ("input_blocks.0.0.weight", np.zeros((0, 2, 3), np.float32), "has shape (0, 2, 3)"),
+        ("label_emb.weight", np.array(1.0, np.float32), "has shape ()"),
+        ("time_embed.0.weight", np.zeros(64, np.float32), "has shape (64,)"),
+        (
+            "input_blocks.1.0.in_layers.2.weight",
+            np.zeros((32, 96), np.float32),
+            "has shape (32, 96); its layer needs 3 dimensions",
+        ),
+        (
+            "input_blocks.1.0.out_layers.3.weight",
+            np.zeros((32, 32, 5), np.float32),
+            "has shape (32, 32, 5); the architecture read from the file expects (32, 32, 3)",
+        ),
+        (
+            "middle_block.1.qkv.weight",
+            np.zeros((190, 64, 1), np.float32),
+            "has shape (190, 64, 1); an attention block of 64 channels has (192, 64, 1)",
+        ),
+        ("out.0.bias", np.full(32, np.nan, np.float32), "out.0.bias holds NaN or Inf"),
+        ("label_emb.weight", np.full((8, 64), np.inf, np.float32), "label_emb.weight holds NaN"),
+    ],
+)
+def test_malformed_parameters_name_file_and_parameter(
+    official, tmp_path, monkeypatch, name, value, message
+):
   path = tmp_path / "bad.pt"
   fx.write_pt(path, {**official, name: value}, monkeypatch)
   with pytest.raises(OfficialCheckpointError) as e:
@@ -172,8 +199,9 @@ def test_malformed_parameters_name_file_and_parameter(official, tmp_path, monkey
 def test_non_string_keys_are_refused(official, tmp_path, monkeypatch):
   path = tmp_path / "int_keys.pt"
   fx.write_pt(path, {**official, 3: np.zeros(2, np.float32)}, monkeypatch)
-  with pytest.raises(OfficialCheckpointError,
-                     match="int_keys.pt: the state dict has a key 3 of type int"):
+  with pytest.raises(
+      OfficialCheckpointError, match="int_keys.pt: the state dict has a key 3 of type int"
+  ):
     official_import.load_official(path)
   fx.write_pt(path, {0: np.zeros(2, np.float32)}, monkeypatch)  # no parameter names at all
   with pytest.raises(OfficialCheckpointError, match="found entries"):
@@ -182,14 +210,23 @@ def test_non_string_keys_are_refused(official, tmp_path, monkeypatch):
 
 def test_import_script_refuses_with_one_line(official, tmp_path, monkeypatch):
   flat = tmp_path / "flat.pt"
-  fx.write_pt(flat, {**official, "input_blocks.0.0.weight": np.zeros((32, 6), np.float32)},
-              monkeypatch)
-  _one_line_error(_import([f"--checkpoint={flat}"], tmp_path / "a"), str(flat),
-                  "input_blocks.0.0.weight", "(32, 6)")
+  fx.write_pt(
+      flat, {**official, "input_blocks.0.0.weight": np.zeros((32, 6), np.float32)}, monkeypatch
+  )
+  _one_line_error(
+      _import([f"--checkpoint={flat}"], tmp_path / "a"),
+      str(flat),
+      "input_blocks.0.0.weight",
+      "(32, 6)",
+  )
   good = tmp_path / "good.pt"
   fx.write_pt(good, official, monkeypatch)
-  _one_line_error(_import([f"--checkpoint={good}", "--num_heads=3"], tmp_path / "b"),
-                  "--num_heads=3", "[64] channels", "divisible by 3 heads")
+  _one_line_error(
+      _import([f"--checkpoint={good}", "--num_heads=3"], tmp_path / "b"),
+      "--num_heads=3",
+      "[64] channels",
+      "divisible by 3 heads",
+  )
   assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 

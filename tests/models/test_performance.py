@@ -18,12 +18,18 @@ ON, OFF = PerformanceOptions("on", "on"), PerformanceOptions("off", "off")
 def _forward_and_gradient(options):
   """A U-Net with 128 channels (Winograd taken) on a short sequence: its output and the
   gradient of a non-linear read-out over all parameters, in one jitted call."""
-  config = UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1,),
-                             attention_levels=(), num_heads=1, length=6, padded_length=8)
+  config = UNetConfig(
+      num_tokens=4,
+      base_channels=128,
+      channel_mult=(1,),
+      attention_levels=(),
+      num_heads=1,
+      length=6,
+      padded_length=8,
+  )
   graphdef, params = unet1d.init_unet(config, jax.random.key(0))
   # the zero-initialised output convolutions made non-zero, so every gradient flows
-  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape),
-                        params)
+  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape), params)
   keys = jax.random.split(jax.random.key(2), 2)
   x, weight = jax.random.normal(keys[0], (2, 6, 2)), jax.random.normal(keys[1], (2, 6, 2))
   forward = lambda p: unet1d.apply_unet(graphdef, p, x, jnp.array([3, 500]), jnp.array([0, 4]))
@@ -49,8 +55,9 @@ def _primitives(fn, *args) -> str:
   return str(jax.make_jaxpr(fn)(*args))
 
 
-@pytest.mark.parametrize("value, fast, plain", [
-    ("on", True, False), ("off", False, True), ("auto", True, True)])
+@pytest.mark.parametrize(
+    "value, fast, plain", [("on", True, False), ("off", False, True), ("auto", True, True)]
+)
 def test_each_value_traces_the_paths_it_names(value, fast, plain):
   x, kernel = jnp.zeros((2, 8, 128)), jnp.zeros((3, 128, 128))
   norm = GroupNorm(128, 32, 1e-5)
@@ -72,16 +79,20 @@ def test_resolved_per_platform_and_described():
   assert auto.resolved("cpu") == {"winograd": True, "group_norm_backward": True}
   assert auto.resolved("gpu") == {"winograd": False, "group_norm_backward": False}
   assert PerformanceOptions("on", "off").resolved("gpu") == {
-      "winograd": True, "group_norm_backward": False}
+      "winograd": True,
+      "group_norm_backward": False,
+  }
   assert auto.describe("gpu") == "winograd=auto (off), group_norm_backward=auto (off)"
 
 
 def test_environment_values_and_bad_values_named():
   assert performance.from_environment({}) == PerformanceOptions()
   assert performance.from_environment(
-      {"CVMDX_WINOGRAD": "off", "CVMDX_GROUP_NORM_BACKWARD": ""}) == PerformanceOptions("off")
-  with pytest.raises(ValueError, match="CVMDX_GROUP_NORM_BACKWARD='yes': expected one of "
-                                       "auto, on, off"):
+      {"CVMDX_WINOGRAD": "off", "CVMDX_GROUP_NORM_BACKWARD": ""}
+  ) == PerformanceOptions("off")
+  with pytest.raises(
+      ValueError, match="CVMDX_GROUP_NORM_BACKWARD='yes': expected one of " "auto, on, off"
+  ):
     performance.from_environment({"CVMDX_GROUP_NORM_BACKWARD": "yes"})
   with pytest.raises(ValueError, match="winograd='fast'"):
     PerformanceOptions(winograd="fast")
@@ -109,11 +120,17 @@ def test_use_sets_the_options_for_a_block_and_retraces_jitted_functions():
 
 def _two_level_unet():
   """128 channels on two levels: residual blocks and an upsampling that take Winograd."""
-  config = UNetConfig(num_tokens=4, base_channels=128, channel_mult=(1, 1),
-                             attention_levels=(), num_heads=1, length=6, padded_length=8)
+  config = UNetConfig(
+      num_tokens=4,
+      base_channels=128,
+      channel_mult=(1, 1),
+      attention_levels=(),
+      num_heads=1,
+      length=6,
+      padded_length=8,
+  )
   graphdef, params = unet1d.init_unet(config, jax.random.key(0))
-  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape),
-                        params)
+  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape), params)
   return graphdef, params
 
 
@@ -125,8 +142,9 @@ def _transformed(params) -> int:
 def test_prepared_params_forward_bit_for_bit_and_idempotent(options, prepared):
   graphdef, params = _two_level_unet()
   x = jax.random.normal(jax.random.key(2), (3, 6, 2))
-  forward = jax.jit(lambda p: unet1d.apply_unet(graphdef, p, x, jnp.array([3, 500, 999]),
-                                                jnp.array([0, 4, 1])))
+  forward = jax.jit(
+      lambda p: unet1d.apply_unet(graphdef, p, x, jnp.array([3, 500, 999]), jnp.array([0, 4, 1]))
+  )
   with performance.use(options):
     once = unet1d.prepare_params(graphdef, params)
     twice = unet1d.prepare_params(graphdef, once)

@@ -43,15 +43,17 @@ def test_straight_through_gradient_is_identity_and_losses_split():
 
 
 def test_straight_through_reaches_encoder(scenarios_factory):
-  cfg = TokenizerConfig(EncoderConfig(latent_dim=4, channels=(8, 8), kernel_size=3),
-                            QuantizerConfig(codebook_size=5, latent_dim=4))
+  cfg = TokenizerConfig(
+      EncoderConfig(latent_dim=4, channels=(8, 8), kernel_size=3),
+      QuantizerConfig(codebook_size=5, latent_dim=4),
+  )
   model = tok.Tokenizer(cfg, rngs=nnx.Rngs(0))
   graphdef, params = nnx.split(model, nnx.Param)
   s = scenarios_factory(6)
 
   def recon_only(params):  # no commitment term: the encoder is reached only through z_q
     out = nnx.merge(graphdef, params)(jnp.asarray(s.xi), jnp.asarray(s.mask))
-    return jnp.mean(out.reconstruction ** 2) + jnp.mean(out.logits ** 2)
+    return jnp.mean(out.reconstruction**2) + jnp.mean(out.logits**2)
 
   grads = jax.jit(jax.grad(recon_only))(params)
   enc = jax.tree.leaves(grads["encoder"])
@@ -62,8 +64,7 @@ def test_straight_through_reaches_encoder(scenarios_factory):
 def test_batch_share_ignores_padding_and_perplexity_matches_scipy():
   idx = jnp.array([0, 0, 1, 2, 2, 2, 3])
   weight = jnp.array([1, 1, 1, 1, 1, 1, 0.0])
-  np.testing.assert_allclose(qz.batch_share(idx, weight, 5), [2 / 6, 1 / 6, 3 / 6, 0, 0],
-                             rtol=1e-6)
+  np.testing.assert_allclose(qz.batch_share(idx, weight, 5), [2 / 6, 1 / 6, 3 / 6, 0, 0], rtol=1e-6)
   in_use, ppl = qz.codebook_stats(idx, 5, weight)
   assert int(in_use) == 3
   np.testing.assert_allclose(ppl, np.exp(scipy.stats.entropy([2, 1, 3])), rtol=1e-5)
@@ -73,8 +74,15 @@ def test_cvq_anchors_come_only_from_weighted_rows():
   cfg = QuantizerConfig(kind="cvq", codebook_size=16, latent_dim=2)
   z = jnp.concatenate([jnp.zeros((4, 2)), jnp.full((4, 2), 1e6)])
   weight = jnp.array([1.0] * 4 + [0.0] * 4)
-  codebook, usage = qz.update_codebook(jnp.ones((16, 2)), qz.init_usage(cfg), z,
-                                       jnp.zeros(8, jnp.int32), weight, jax.random.key(0), cfg)
+  codebook, usage = qz.update_codebook(
+      jnp.ones((16, 2)),
+      qz.init_usage(cfg),
+      z,
+      jnp.zeros(8, jnp.int32),
+      weight,
+      jax.random.key(0),
+      cfg,
+  )
   # entry 0 (used) stays, the unused ones move toward the zero rows, none toward 1e6.
   np.testing.assert_allclose(codebook[0], [1.0, 1.0])
   assert float(jnp.abs(codebook[1:]).max()) < 0.01
@@ -84,14 +92,22 @@ def test_cvq_anchors_come_only_from_weighted_rows():
 def test_vq_update_leaves_codebook_alone():
   cfg = QuantizerConfig(kind="vq", codebook_size=4, latent_dim=2)
   cb = jnp.arange(8.0).reshape(4, 2)
-  new, _ = qz.update_codebook(cb, qz.init_usage(cfg), jnp.zeros((3, 2)),
-                              jnp.zeros(3, jnp.int32), jnp.ones(3), jax.random.key(0), cfg)
+  new, _ = qz.update_codebook(
+      cb,
+      qz.init_usage(cfg),
+      jnp.zeros((3, 2)),
+      jnp.zeros(3, jnp.int32),
+      jnp.ones(3),
+      jax.random.key(0),
+      cfg,
+  )
   np.testing.assert_array_equal(new, cb)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
 def _train_codebook(cfg, codebook, data):
   """SGD on the codebook loss (frozen identity encoder) + the quantiser's update."""
+
   def step(carry, i):
     codebook, usage = carry
     key = jax.random.fold_in(jax.random.key(1), i)
@@ -100,6 +116,7 @@ def _train_codebook(cfg, codebook, data):
     codebook = codebook - 0.5 * grad
     idx = qz.nearest(codebook, z)
     return qz.update_codebook(codebook, usage, z, idx, jnp.ones(64), key, cfg), None
+
   (codebook, _), _ = jax.lax.scan(step, (codebook, qz.init_usage(cfg)), jnp.arange(600))
   return qz.codebook_stats(qz.nearest(codebook, data), cfg.codebook_size)
 
@@ -107,12 +124,14 @@ def _train_codebook(cfg, codebook, data):
 def test_cvq_revives_entries_that_vq_leaves_dead():
   rng = np.random.default_rng(0)
   centres = 5.0 * np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], 1)
-  data = jnp.asarray((centres[rng.integers(0, 8, 2000)] + rng.normal(0, 0.1, (2000, 2)))
-                     .astype(np.float32))
+  data = jnp.asarray(
+      (centres[rng.integers(0, 8, 2000)] + rng.normal(0, 0.1, (2000, 2))).astype(np.float32)
+  )
   # Entries on a line outside the ring: at first one entry is nearest to every cluster,
   # and VQ's losers (no members, no codebook gradient) never move.
-  codebook = jnp.asarray(np.stack([np.linspace(7, 9, 8), rng.normal(0, 0.1, 8)], 1)
-                         .astype(np.float32))
+  codebook = jnp.asarray(
+      np.stack([np.linspace(7, 9, 8), rng.normal(0, 0.1, 8)], 1).astype(np.float32)
+  )
   assert int(qz.codebook_stats(qz.nearest(codebook, data), 8)[0]) == 1
   vq_use, vq_ppl = _train_codebook(QuantizerConfig("vq", 8, 2), codebook, data)
   cvq_use, cvq_ppl = _train_codebook(QuantizerConfig("cvq", 8, 2), codebook, data)

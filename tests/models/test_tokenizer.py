@@ -17,8 +17,7 @@ def test_normalisation_hand_values_and_mask():
   out = np.asarray(scenario_norm.encoder_input(xi, mask))
   np.testing.assert_allclose(out[0, 0, 0], [0.5, -1.0, 2.5, 2.5, 1.0], rtol=1e-6)
   np.testing.assert_array_equal(out[0, 1, 0], [0, 0, 0, 0, 0])
-  np.testing.assert_allclose(scenario_norm.denormalize_xi(out[0, 0, 0, :4]), xi[0, 0, 0],
-                             rtol=1e-6)
+  np.testing.assert_allclose(scenario_norm.denormalize_xi(out[0, 0, 0, :4]), xi[0, 0, 0], rtol=1e-6)
 
 
 _loss = jax.jit(lambda model, batch, cfg: tok.loss_fn(*model, batch, cfg), static_argnums=2)
@@ -33,14 +32,20 @@ def _model(seed=0):
 def test_loss_ignores_padding_rows_and_absent_vehicles(scenarios_factory):
   cfg, model = _model()
   s = scenarios_factory(6)
-  batch = {"xi": jnp.asarray(s.xi), "mask": jnp.asarray(s.mask),
-           "label": jnp.asarray(s.label), "weight": jnp.ones(6)}
+  batch = {
+      "xi": jnp.asarray(s.xi),
+      "mask": jnp.asarray(s.mask),
+      "label": jnp.asarray(s.label),
+      "weight": jnp.ones(6),
+  }
   loss, _ = _loss(model, batch, cfg)
   garbage = scenarios_factory(3, seed=9)
-  padded = {"xi": jnp.concatenate([batch["xi"], 1e3 * jnp.asarray(garbage.xi)]),
-            "mask": jnp.concatenate([batch["mask"], jnp.asarray(garbage.mask)]),
-            "label": jnp.concatenate([batch["label"], jnp.asarray(garbage.label)]),
-            "weight": jnp.concatenate([jnp.ones(6), jnp.zeros(3)])}
+  padded = {
+      "xi": jnp.concatenate([batch["xi"], 1e3 * jnp.asarray(garbage.xi)]),
+      "mask": jnp.concatenate([batch["mask"], jnp.asarray(garbage.mask)]),
+      "label": jnp.concatenate([batch["label"], jnp.asarray(garbage.label)]),
+      "weight": jnp.concatenate([jnp.ones(6), jnp.zeros(3)]),
+  }
   np.testing.assert_allclose(_loss(model, padded, cfg)[0], loss, rtol=1e-5)
   # values under a False mask do not matter
   hidden = {**batch, "xi": jnp.where(batch["mask"][..., None], batch["xi"], 77.0)}
@@ -52,8 +57,12 @@ def test_total_loss_is_the_weighted_sum_of_its_terms(scenarios_factory):
   s = scenarios_factory(5)
   batch = {"xi": s.xi, "mask": s.mask, "label": s.label, "weight": np.ones(5, np.float32)}
   loss, (m, out) = _loss(model, batch, cfg)
-  expected = (m["reconstruction"] + m["codebook"] + cfg.quantizer.beta * m["commitment"]
-              + cfg.cls_weight * m["classification"])
+  expected = (
+      m["reconstruction"]
+      + m["codebook"]
+      + cfg.quantizer.beta * m["commitment"]
+      + cfg.cls_weight * m["classification"]
+  )
   np.testing.assert_allclose(loss, expected, rtol=1e-6)
   logits = np.asarray(out.logits, np.float64)
   ce = -(logits[np.arange(5), s.label] - np.log(np.exp(logits).sum(-1))).mean()
@@ -85,8 +94,12 @@ def test_classifier_beats_chance_on_separable_toy_set(scenarios_factory):
   s = scenarios_factory(96)
   for i in range(120):
     rows = np.random.default_rng(i).choice(96, 16, replace=False)
-    batch = {"xi": s.xi[rows], "mask": s.mask[rows], "label": s.label[rows],
-             "weight": np.ones(16, np.float32)}
+    batch = {
+        "xi": s.xi[rows],
+        "mask": s.mask[rows],
+        "label": s.label[rows],
+        "weight": np.ones(16, np.float32),
+    }
     state, _ = step(state, batch, jax.random.key(i))
   test = scenarios_factory(60, seed=5)
   _, _, logits = train_tok.encode(graphdef, state["params"], test.xi, test.mask, 32)

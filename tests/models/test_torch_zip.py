@@ -51,23 +51,50 @@ def _check_valid(path, obj):
     np.testing.assert_array_equal(got[k], v)
 
 
-STORAGE_RENAME = (_global("torch", "FloatStorage") + pickle.EMPTY_DICT + _u("name")
-                  + _u("HalfStorage") + pickle.SETITEM + pickle.BUILD + pickle.POP
-                  + pickle.EMPTY_DICT)
-SLOT_STATE = (_global("torch._utils", "_rebuild_tensor_v2") + pickle.NONE + pickle.EMPTY_DICT
-              + _u("x") + pickle.BININT1 + b"\x01" + pickle.SETITEM + pickle.TUPLE2
-              + pickle.BUILD + pickle.POP + pickle.EMPTY_DICT)
-TYPE_STATE = (_global("collections", "OrderedDict") + pickle.EMPTY_DICT + _u("x") + pickle.NONE
-              + pickle.SETITEM + pickle.BUILD)
+STORAGE_RENAME = (
+    _global("torch", "FloatStorage")
+    + pickle.EMPTY_DICT
+    + _u("name")
+    + _u("HalfStorage")
+    + pickle.SETITEM
+    + pickle.BUILD
+    + pickle.POP
+    + pickle.EMPTY_DICT
+)
+SLOT_STATE = (
+    _global("torch._utils", "_rebuild_tensor_v2")
+    + pickle.NONE
+    + pickle.EMPTY_DICT
+    + _u("x")
+    + pickle.BININT1
+    + b"\x01"
+    + pickle.SETITEM
+    + pickle.TUPLE2
+    + pickle.BUILD
+    + pickle.POP
+    + pickle.EMPTY_DICT
+)
+TYPE_STATE = (
+    _global("collections", "OrderedDict")
+    + pickle.EMPTY_DICT
+    + _u("x")
+    + pickle.NONE
+    + pickle.SETITEM
+    + pickle.BUILD
+)
 
 
-@pytest.mark.parametrize("body, message", [
-    (STORAGE_RENAME, "BUILD sets the state of torch.FloatStorage"),
-    (SLOT_STATE, "BUILD sets the state of method"),
-    (TYPE_STATE, "BUILD sets the state of type"),
-])
-def test_build_on_reader_objects_is_refused_and_leaves_no_state(tmp_path, monkeypatch, body,
-                                                                 message):
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (STORAGE_RENAME, "BUILD sets the state of torch.FloatStorage"),
+        (SLOT_STATE, "BUILD sets the state of method"),
+        (TYPE_STATE, "BUILD sets the state of type"),
+    ],
+)
+def test_build_on_reader_objects_is_refused_and_leaves_no_state(
+    tmp_path, monkeypatch, body, message
+):
   path, obj = _valid(tmp_path, monkeypatch)
   _check_valid(path, obj)
   bad = _raw(tmp_path / "bad.pt", body)
@@ -91,21 +118,25 @@ def _tensor(base, offset, size, stride):
   return fx._Tensor("0", base, offset=offset, size=size, stride=stride)
 
 
-@pytest.mark.parametrize("offset, size, stride, base, message", [
-    (0, (20000, 20000), (0, 0), 1, "broadcast, reversed or overlapping"),
-    (2, (3,), (-1,), 3, "broadcast, reversed or overlapping"),
-    (0, (3, 3), (1, 1), 9, "broadcast, reversed or overlapping"),
-    (1, (4,), (1,), 4, "exceeds its storage of 4 elements"),
-    (0, (2, 3), (4, 1), 6, "exceeds its storage of 6 elements"),
-    (-1, (2,), (1,), 4, "offset -1 or size"),
-    (0, (2**50,), (1,), 4, "out of range"),
-    (0, (2.0,), (1,), 4, "must be an integer and two equally long tuples"),
-    (0, (2, 2), (2,), 4, "must be an integer and two equally long tuples"),
-])
+@pytest.mark.parametrize(
+    "offset, size, stride, base, message",
+    [
+        (0, (20000, 20000), (0, 0), 1, "broadcast, reversed or overlapping"),
+        (2, (3,), (-1,), 3, "broadcast, reversed or overlapping"),
+        (0, (3, 3), (1, 1), 9, "broadcast, reversed or overlapping"),
+        (1, (4,), (1,), 4, "exceeds its storage of 4 elements"),
+        (0, (2, 3), (4, 1), 6, "exceeds its storage of 6 elements"),
+        (-1, (2,), (1,), 4, "offset -1 or size"),
+        (0, (2**50,), (1,), 4, "out of range"),
+        (0, (2.0,), (1,), 4, "must be an integer and two equally long tuples"),
+        (0, (2, 2), (2,), 4, "must be an integer and two equally long tuples"),
+    ],
+)
 def test_hostile_views_are_refused(tmp_path, monkeypatch, offset, size, stride, base, message):
   path = tmp_path / "views.pt"
-  fx.write_pt(path, {"layer": {"w": _tensor(np.zeros(base, np.float32), offset, size, stride)}},
-              monkeypatch)
+  fx.write_pt(
+      path, {"layer": {"w": _tensor(np.zeros(base, np.float32), offset, size, stride)}}, monkeypatch
+  )
   with pytest.raises(torch_zip.TorchFileError) as e:
     torch_zip.read_pt(path)
   assert str(e.value).startswith(f"{path}: tensor layer.w (storage archive/data/0)")
@@ -115,9 +146,11 @@ def test_hostile_views_are_refused(tmp_path, monkeypatch, offset, size, stride, 
 def test_views_torch_writes_are_read(tmp_path, monkeypatch):
   base = np.arange(24, dtype=np.float32)
   want = base.reshape(2, 3, 4).transpose(2, 0, 1)[1:, :, ::2]  # permuted, narrowed, stepped
-  obj = {"perm": _tensor(base, 1, (3, 2, 2), (1, 12, 8)),
-         "unit": _tensor(base, 5, (1, 3, 1), (0, 2, -7)),  # strides of size-1 dims are free
-         "empty": _tensor(base, 0, (0, 5), (5, 1))}
+  obj = {
+      "perm": _tensor(base, 1, (3, 2, 2), (1, 12, 8)),
+      "unit": _tensor(base, 5, (1, 3, 1), (0, 2, -7)),  # strides of size-1 dims are free
+      "empty": _tensor(base, 0, (0, 5), (5, 1)),
+  }
   path = tmp_path / "views.pt"
   fx.write_pt(path, obj, monkeypatch)
   got = torch_zip.read_pt(path)
@@ -147,17 +180,26 @@ def test_zip_entries_are_checked_by_their_header(tmp_path, monkeypatch):
   pkl, storages = fx.pickled({"w": np.zeros(10, np.float32)}, monkeypatch)
   raw = storages["0"].tobytes()
   cases = {
-      "deflated": ([("a/data.pkl", pkl, zipfile.ZIP_STORED),
-                    ("a/data/0", raw, zipfile.ZIP_DEFLATED)], "entry a/data/0 is compressed"),
-      "big pickle": ([("a/data.pkl", pickle.dumps("x" * (2 << 20), 2), zipfile.ZIP_STORED)],
-                     "entry a/data.pkl declares 2097162 bytes, more than the 524288 allowed"),
-      "short storage": ([("a/data.pkl", pkl, zipfile.ZIP_STORED),
-                         ("a/data/0", raw[:36], zipfile.ZIP_STORED)],
-                        "storage a/data/0 declares 10 elements of FloatStorage"),
-      "missing storage": ([("a/data.pkl", pkl, zipfile.ZIP_STORED)],
-                          "entry a/data/0 missing from the archive"),
-      "two pickles": ([("a/data.pkl", pkl, zipfile.ZIP_STORED),
-                       ("b/data.pkl", pkl, zipfile.ZIP_STORED)], "expected one <name>/data.pkl"),
+      "deflated": (
+          [("a/data.pkl", pkl, zipfile.ZIP_STORED), ("a/data/0", raw, zipfile.ZIP_DEFLATED)],
+          "entry a/data/0 is compressed",
+      ),
+      "big pickle": (
+          [("a/data.pkl", pickle.dumps("x" * (2 << 20), 2), zipfile.ZIP_STORED)],
+          "entry a/data.pkl declares 2097162 bytes, more than the 524288 allowed",
+      ),
+      "short storage": (
+          [("a/data.pkl", pkl, zipfile.ZIP_STORED), ("a/data/0", raw[:36], zipfile.ZIP_STORED)],
+          "storage a/data/0 declares 10 elements of FloatStorage",
+      ),
+      "missing storage": (
+          [("a/data.pkl", pkl, zipfile.ZIP_STORED)],
+          "entry a/data/0 missing from the archive",
+      ),
+      "two pickles": (
+          [("a/data.pkl", pkl, zipfile.ZIP_STORED), ("b/data.pkl", pkl, zipfile.ZIP_STORED)],
+          "expected one <name>/data.pkl",
+      ),
   }
   for name, (entries, message) in cases.items():
     path = _archive(tmp_path / f"{name}.pt", entries)
@@ -191,30 +233,63 @@ def test_entries_sharing_bytes_are_read_once_at_most(tmp_path, monkeypatch, dept
 NESTED = pickle.EMPTY_LIST * 40 + pickle.APPEND * 39
 
 
-@pytest.mark.parametrize("body, message", [
-    (_global("collections", "OrderedDict") + pickle.EMPTY_TUPLE + pickle.NEWOBJ, "opcode"),
-    (pickle.EXT1 + b"\x01", "opcode"),
-    (pickle.EMPTY_SET, "opcode"),
-    (pickle.MARK + _u("k") + pickle.NONE + pickle.DICT, "opcode"),
-    (pickle.EMPTY_TUPLE + _u("k") + pickle.NONE + pickle.SETITEM, "SETITEM on tuple"),
-    (pickle.EMPTY_DICT + pickle.NONE + pickle.APPEND, "APPEND on dict"),
-    (pickle.EMPTY_DICT + pickle.EMPTY_TUPLE + pickle.TUPLE1 * 100_000 + pickle.NONE
-     + pickle.SETITEM, "a dict key of type tuple"),
-    (_global("torch", "FloatStorage") + pickle.EMPTY_TUPLE + pickle.REDUCE,
-     "REDUCE calls torch.FloatStorage"),
-    (_global("collections", "OrderedDict") + pickle.EMPTY_LIST + pickle.TUPLE1 + pickle.REDUCE,
-     "REDUCE calls OrderedDict with arguments"),
-    (_global("builtins", "eval") + _u("1") + pickle.TUPLE1 + pickle.REDUCE, "names builtins.eval"),
-    (pickle.EMPTY_DICT + _u("k") + _global("torch", "FloatStorage") + pickle.SETITEM,
-     "k: holds torch.FloatStorage"),
-    (pickle.EMPTY_LIST + pickle.BINPUT + b"\x00" + pickle.BINGET + b"\x00" + pickle.APPEND,
-     "bad.pt: 0: containers nested deeper than 32 or in a cycle"),
-    (pickle.EMPTY_LIST + (pickle.EMPTY_LIST + pickle.APPEND) * 70_000,
-     "65536: more than 65536 containers and tensors"),
-    (NESTED, "0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0: containers"),
-    (_u("storage") + _global("torch", "FloatStorage") + _u("0") + pickle.BININT1 + b"\x05"
-     + pickle.TUPLE + pickle.BINPERSID, "unsupported persistent id"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (_global("collections", "OrderedDict") + pickle.EMPTY_TUPLE + pickle.NEWOBJ, "opcode"),
+        (pickle.EXT1 + b"\x01", "opcode"),
+        (pickle.EMPTY_SET, "opcode"),
+        (pickle.MARK + _u("k") + pickle.NONE + pickle.DICT, "opcode"),
+        (pickle.EMPTY_TUPLE + _u("k") + pickle.NONE + pickle.SETITEM, "SETITEM on tuple"),
+        (pickle.EMPTY_DICT + pickle.NONE + pickle.APPEND, "APPEND on dict"),
+        (
+            pickle.EMPTY_DICT
+            + pickle.EMPTY_TUPLE
+            + pickle.TUPLE1 * 100_000
+            + pickle.NONE
+            + pickle.SETITEM,
+            "a dict key of type tuple",
+        ),
+        (
+            _global("torch", "FloatStorage") + pickle.EMPTY_TUPLE + pickle.REDUCE,
+            "REDUCE calls torch.FloatStorage",
+        ),
+        (
+            _global("collections", "OrderedDict")
+            + pickle.EMPTY_LIST
+            + pickle.TUPLE1
+            + pickle.REDUCE,
+            "REDUCE calls OrderedDict with arguments",
+        ),
+        (
+            _global("builtins", "eval") + _u("1") + pickle.TUPLE1 + pickle.REDUCE,
+            "names builtins.eval",
+        ),
+        (
+            pickle.EMPTY_DICT + _u("k") + _global("torch", "FloatStorage") + pickle.SETITEM,
+            "k: holds torch.FloatStorage",
+        ),
+        (
+            pickle.EMPTY_LIST + pickle.BINPUT + b"\x00" + pickle.BINGET + b"\x00" + pickle.APPEND,
+            "bad.pt: 0: containers nested deeper than 32 or in a cycle",
+        ),
+        (
+            pickle.EMPTY_LIST + (pickle.EMPTY_LIST + pickle.APPEND) * 70_000,
+            "65536: more than 65536 containers and tensors",
+        ),
+        (NESTED, "0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0.0: containers"),
+        (
+            _u("storage")
+            + _global("torch", "FloatStorage")
+            + _u("0")
+            + pickle.BININT1
+            + b"\x05"
+            + pickle.TUPLE
+            + pickle.BINPERSID,
+            "unsupported persistent id",
+        ),
+    ],
+)
 def test_opcodes_and_containers_are_restricted(tmp_path, body, message):
   if body.startswith(_u("storage")):
     body = pickle.MARK + body
@@ -240,30 +315,40 @@ print((peak() - before) // 1024)
 
 
 def _peak_growth_mb(path) -> tuple[str, int]:
-  done = subprocess.run([sys.executable, "-c", _MEASURE, str(path)], cwd=REPO, check=True,
-                        env={"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin"},
-                        capture_output=True, text=True)
+  done = subprocess.run(
+      [sys.executable, "-c", _MEASURE, str(path)],
+      cwd=REPO,
+      check=True,
+      env={"PYTHONPATH": pythonpath(), "PATH": "/usr/bin:/bin"},
+      capture_output=True,
+      text=True,
+  )
   message, growth = done.stdout.strip().splitlines()
   return message, int(growth)
 
 
 def test_tiny_files_declaring_huge_tensors_stay_small(tmp_path, monkeypatch):
   broadcast = tmp_path / "broadcast.pt"
-  fx.write_pt(broadcast, {"w": _tensor(np.zeros(1, np.float32), 0, (20000, 20000), (0, 0))},
-              monkeypatch)
+  fx.write_pt(
+      broadcast, {"w": _tensor(np.zeros(1, np.float32), 0, (20000, 20000), (0, 0))}, monkeypatch
+  )
   bomb = tmp_path / "bomb.pt"
   numel = 2**30 // 4
-  pkl, _ = fx.pickled({"w": fx._Tensor("0", np.broadcast_to(np.float32(0), (numel,)),
-                                       size=(numel,), stride=(1,))}, monkeypatch)
+  pkl, _ = fx.pickled(
+      {"w": fx._Tensor("0", np.broadcast_to(np.float32(0), (numel,)), size=(numel,), stride=(1,))},
+      monkeypatch,
+  )
   fx.write_deflate_bomb(bomb, pkl, "archive", 2**30)
   with zipfile.ZipFile(bomb) as z:  # a real bomb: 1 GiB of zeros behind ~1 MB
     assert z.getinfo("archive/data/0").file_size == 2**30
     assert z.open("archive/data/0").read(1 << 20) == bytes(1 << 20)
   dicts = _raw(tmp_path / "dicts.pt", pickle.EMPTY_DICT * (torch_zip.MAX_PICKLE_BYTES - 4))
   assert broadcast.stat().st_size < 700 and bomb.stat().st_size < 1.1e6
-  for path, message in ((broadcast, "broadcast, reversed or overlapping view"),
-                        (bomb, "entry archive/data/0 is compressed"),
-                        (dicts, "read")):  # the most Python objects a pickle makes
+  for path, message in (
+      (broadcast, "broadcast, reversed or overlapping view"),
+      (bomb, "entry archive/data/0 is compressed"),
+      (dicts, "read"),
+  ):  # the most Python objects a pickle makes
     text, growth = _peak_growth_mb(path)
     print(f"{path.name}: {path.stat().st_size} bytes, peak RSS growth {growth} MB: {text}")
     assert message in text and (text == "read" or text.startswith(str(path)))

@@ -40,8 +40,9 @@ def test_few_member_entries_stay_invertible():
   g = uncertainty.fit_gaussians(z, idx, codebook, shrinkage=1.0, ridge=0.0)
   for q in (1, 2, 3):  # fewer members than the 3 latent dimensions
     assert np.linalg.eigvalsh(np.asarray(g.cov[q], np.float64)).min() > 0
-    np.testing.assert_allclose(np.asarray(g.precision[q]) @ np.asarray(g.cov[q]), np.eye(3),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        np.asarray(g.precision[q]) @ np.asarray(g.cov[q]), np.eye(3), atol=1e-3
+    )
   # even with a single latent overall (pooled covariance of rank <= 1) Sigma is invertible
   one = uncertainty.fit_gaussians(z[:1], idx[:1], codebook)
   assert np.all(np.isfinite(one.precision))

@@ -6,14 +6,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from flax import nnx
 
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import layers, unet1d
 
-TINY = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
-                         attention_levels=(1,), num_heads=2, dropout=0.1, padded_length=128)
+TINY = UNetConfig(
+    num_tokens=5,
+    base_channels=16,
+    channel_mult=(1, 2),
+    groups=8,
+    attention_levels=(1,),
+    num_heads=2,
+    dropout=0.1,
+    padded_length=128,
+)
 
 
 def _inputs(b=3):
@@ -26,8 +33,15 @@ def _params_count_by_hand(cfg):
   ch, e = cfg.base_channels, cfg.emb_mult * cfg.base_channels
   conv = lambda i, o, k=3: k * i * o + o
   norm = lambda c: 2 * c
-  res = lambda i, o: (norm(i) + conv(i, o) + e * 2 * o + 2 * o + norm(o) + conv(o, o)
-                      + (conv(i, o, 1) if i != o else 0))
+  res = lambda i, o: (
+      norm(i)
+      + conv(i, o)
+      + e * 2 * o
+      + 2 * o
+      + norm(o)
+      + conv(o, o)
+      + (conv(i, o, 1) if i != o else 0)
+  )
   attn = lambda c: norm(c) + 4 * (c * c + c)
   total = ch * e + e + e * e + e + (cfg.num_tokens + 1) * e + conv(cfg.channels, ch)
   skips, cur = [ch], ch
@@ -42,8 +56,7 @@ def _params_count_by_hand(cfg):
   total += 2 * res(cur, cur) + attn(cur)
   for lvl, m in reversed(list(enumerate(cfg.channel_mult))):
     for _ in range(2):
-      total += res(cur + skips.pop(), m * ch) + (attn(m * ch) if lvl in cfg.attention_levels
-                                                  else 0)
+      total += res(cur + skips.pop(), m * ch) + (attn(m * ch) if lvl in cfg.attention_levels else 0)
       cur = m * ch
     if lvl > 0:
       total += conv(cur, cur)
@@ -129,8 +142,15 @@ def test_group_norm_epsilon_is_the_official_1e5():
   np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)
 
 
-EGO = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2), groups=8,
-                        attention_levels=(1,), num_heads=2, cond_dim=13)
+EGO = UNetConfig(
+    num_tokens=5,
+    base_channels=16,
+    channel_mult=(1, 2),
+    groups=8,
+    attention_levels=(1,),
+    num_heads=2,
+    cond_dim=13,
+)
 
 
 def test_conditioning_vector_shapes_params_and_null_branch():
@@ -146,8 +166,9 @@ def test_conditioning_vector_shapes_params_and_null_branch():
   assert out.shape == (3, 125, 2)
   null = jnp.full_like(q, EGO.null_token)
   # the unconditional (null-token) branch still depends on the conditioning vector
-  assert not np.allclose(unet1d.apply_unet(g, p, x, t, null, cond=c1),
-                         unet1d.apply_unet(g, p, x, t, null, cond=c2))
+  assert not np.allclose(
+      unet1d.apply_unet(g, p, x, t, null, cond=c1), unet1d.apply_unet(g, p, x, t, null, cond=c2)
+  )
   assert not np.allclose(out, unet1d.apply_unet(g, p, x, t, q, cond=c2))
   np.testing.assert_array_equal(out, unet1d.apply_unet(g, p, x, t, q, cond=c1))
   solo = unet1d.apply_unet(g, p, x[1:2], t[1:2], q[1:2], cond=c1[1:2])
@@ -163,8 +184,9 @@ def test_conditioning_mlp_hidden_widths():
   assert p["cond_mlp1"]["kernel"].shape == (13, 48)
   assert p["cond_mlp_hidden"][0]["kernel"].shape == (48, 24)
   assert p["cond_mlp2"]["kernel"].shape == (24, e)
-  assert unet1d.count_params(p) == (_params_count_by_hand(EGO) + 13 * 48 + 48 + 48 * 24 + 24
-                                    + 24 * e + e)
+  assert unet1d.count_params(p) == (
+      _params_count_by_hand(EGO) + 13 * 48 + 48 + 48 * 24 + 24 + 24 * e + e
+  )
   same = unet1d.init_unet(dataclasses.replace(EGO, cond_hidden=(e,)), jax.random.key(5))[1]
   default = unet1d.init_unet(EGO, jax.random.key(5))[1]
   assert jax.tree.all(jax.tree.map(np.array_equal, same, default))
@@ -175,10 +197,10 @@ def test_conditioning_mlp_hidden_widths():
   c = jax.random.normal(jax.random.key(7), (3, 13))
   layer = lambda h, name: h @ name["kernel"] + name["bias"]
   h = jax.nn.silu(layer(jax.nn.silu(layer(c, p["cond_mlp1"])), p["cond_mlp_hidden"][0]))
-  time_emb = jax.nn.silu(layer(unet1d.timestep_embedding(t, EGO.base_channels),
-                               p["time_mlp1"]))
-  want = layer(time_emb, p["time_mlp2"]) + p["token_embed"]["embedding"][q] + layer(
-      h, p["cond_mlp2"])
+  time_emb = jax.nn.silu(layer(unet1d.timestep_embedding(t, EGO.base_channels), p["time_mlp1"]))
+  want = (
+      layer(time_emb, p["time_mlp2"]) + p["token_embed"]["embedding"][q] + layer(h, p["cond_mlp2"])
+  )
   model = nnx.merge(g, p)
   np.testing.assert_allclose(model.embedding(t, q, c), want, rtol=1e-5, atol=1e-5)
 

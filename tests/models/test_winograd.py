@@ -9,16 +9,25 @@ from cvmdx_jax.models import performance, winograd
 
 
 def _direct(x, kernel):
-  return jax.lax.conv_general_dilated(x, kernel, (1,), "SAME",
-                                      dimension_numbers=("NWC", "WIO", "NWC"))
+  return jax.lax.conv_general_dilated(
+      x, kernel, (1,), "SAME", dimension_numbers=("NWC", "WIO", "NWC")
+  )
 
 
 def test_hand_worked_sequence():
   # one channel, taps (1, 2, 3): y_i = x_{i-1} + 2 x_i + 3 x_{i+1}, zero outside
   x = jnp.arange(1.0, 9.0).reshape(1, 8, 1)
   kernel = jnp.array([1.0, 2.0, 3.0]).reshape(3, 1, 1)
-  expected = [0 + 2 + 6, 1 + 4 + 9, 2 + 6 + 12, 3 + 8 + 15, 4 + 10 + 18, 5 + 12 + 21,
-              6 + 14 + 24, 7 + 16 + 0]
+  expected = [
+      0 + 2 + 6,
+      1 + 4 + 9,
+      2 + 6 + 12,
+      3 + 8 + 15,
+      4 + 10 + 18,
+      5 + 12 + 21,
+      6 + 14 + 24,
+      7 + 16 + 0,
+  ]
   np.testing.assert_allclose(winograd.winograd_conv(x, kernel)[0, :, 0], expected, rtol=1e-6)
 
 
@@ -42,6 +51,7 @@ def test_conv3_chooses_by_channels_and_length():
     with performance.use(performance.PerformanceOptions(winograd="on")):
       jaxpr = jax.make_jaxpr(winograd.conv3)(x, jnp.zeros((3, shape[-1], out_channels)))
     return "conv_general_dilated" not in str(jaxpr)
+
   big = winograd.MIN_CHANNELS
   assert uses_winograd((2, 16, big), big)
   assert not uses_winograd((2, 16, big - 1), big)  # too few input channels
@@ -60,8 +70,11 @@ def test_any_length_with_raw_or_transformed_taps(length):
   transformed = winograd.transform_kernel(kernel)
   assert transformed.shape == (6, 5, 4) and winograd.is_transformed(transformed)
   for taps in (kernel, transformed):
-    np.testing.assert_allclose(winograd.winograd_conv(x, taps), _direct(x, kernel),
-                               atol=1e-5 * float(jnp.max(jnp.abs(_direct(x, kernel)))))
+    np.testing.assert_allclose(
+        winograd.winograd_conv(x, taps),
+        _direct(x, kernel),
+        atol=1e-5 * float(jnp.max(jnp.abs(_direct(x, kernel)))),
+    )
 
 
 def test_transform_is_g_times_the_taps():
@@ -69,8 +82,9 @@ def test_transform_is_g_times_the_taps():
   # (-1/6, -1/6, -1/6), (-1/6, 1/6, -1/6), (1/24, 1/12, 1/6), (1/24, -1/12, 1/6), (0, 0, 1);
   # one channel with taps (1, 2, 3) worked by hand
   got = winograd.transform_kernel(jnp.array([1.0, 2.0, 3.0]).reshape(3, 1, 1))[:, 0, 0]
-  np.testing.assert_allclose(got, [1 / 4, -1, -1 / 3, 1 / 24 + 2 / 12 + 3 / 6,
-                                   1 / 24 - 2 / 12 + 3 / 6, 3], rtol=1e-6)
+  np.testing.assert_allclose(
+      got, [1 / 4, -1, -1 / 3, 1 / 24 + 2 / 12 + 3 / 6, 1 / 24 - 2 / 12 + 3 / 6, 3], rtol=1e-6
+  )
 
 
 def test_conv3_takes_a_transformed_kernel_at_any_length():

@@ -30,6 +30,12 @@ def make_scenarios(m: int, seed: int = 0):
   mask = np.broadcast_to(mask, (m, 9, constants.T_OBS))
   xi = np.where(mask[..., None], xi, 0.0)
   zeros = np.zeros((m, constants.T_PRED, 2), np.float32)
-  return from_arrays(xi=xi, mask=mask, future=zeros, controls=zeros, v0=speed[:, 0, 0],
-                     psi0=np.zeros(m), label=label)
-
+  return from_arrays(
+      xi=xi,
+      mask=mask,
+      future=zeros,
+      controls=zeros,
+      v0=speed[:, 0, 0],
+      psi0=np.zeros(m),
+      label=label,
+  )

@@ -13,10 +13,7 @@ import warnings
 
 import numpy as np
 import threadpoolctl
-from sklearn import decomposition
-from sklearn import exceptions
-from sklearn import mixture
-from sklearn import preprocessing
+from sklearn import decomposition, exceptions, mixture, preprocessing
 
 from cvmdx_jax.config.sampling import HypothesisConfig
 
@@ -52,8 +49,9 @@ def farthest_point_labels(points: np.ndarray, num_components: int) -> np.ndarray
   return np.argmin(sq_dist, axis=1)
 
 
-def initial_parameters(points: np.ndarray, labels: np.ndarray, num_components: int,
-                       reg_covar: float) -> dict:
+def initial_parameters(
+    points: np.ndarray, labels: np.ndarray, num_components: int, reg_covar: float
+) -> dict:
   """weights_init, means_init, precisions_init of a hard assignment (one M-step)."""
   resp = np.eye(num_components)[labels]
   counts = resp.sum(axis=0) + 10 * np.finfo(np.float64).eps
@@ -61,12 +59,16 @@ def initial_parameters(points: np.ndarray, labels: np.ndarray, num_components: i
   diff = points[None] - means[:, None]
   covs = np.einsum("nk,kni,knj->kij", resp, diff, diff) / counts[:, None, None]
   covs += reg_covar * np.eye(points.shape[1])
-  return {"weights_init": counts / counts.sum(), "means_init": means,
-          "precisions_init": np.linalg.inv(covs)}
+  return {
+      "weights_init": counts / counts.sum(),
+      "means_init": means,
+      "precisions_init": np.linalg.inv(covs),
+  }
 
 
-def fit_scenario(trajectories: np.ndarray, config: HypothesisConfig,
-                 tol: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def fit_scenario(
+    trajectories: np.ndarray, config: HypothesisConfig, tol: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
   """The recipe for one scenario with scikit-learn.
 
   Args:
@@ -81,12 +83,20 @@ def fit_scenario(trajectories: np.ndarray, config: HypothesisConfig,
   points = embed(trajectories, config)
   bics, labels = [], []
   for num_components in range(1, config.c_max + 1):
-    init = initial_parameters(points, farthest_point_labels(points, num_components),
-                              num_components, config.reg_covar)
+    init = initial_parameters(
+        points, farthest_point_labels(points, num_components), num_components, config.reg_covar
+    )
     model = mixture.GaussianMixture(
-        num_components, covariance_type="full", reg_covar=config.reg_covar, tol=tol,
-        max_iter=config.em_iters, n_init=1, init_params="random_from_data", random_state=0,
-        **init)
+        num_components,
+        covariance_type="full",
+        reg_covar=config.reg_covar,
+        tol=tol,
+        max_iter=config.em_iters,
+        n_init=1,
+        init_params="random_from_data",
+        random_state=0,
+        **init,
+    )
     with warnings.catch_warnings():
       warnings.simplefilter("ignore", exceptions.ConvergenceWarning)
       model.fit(points)
@@ -96,8 +106,7 @@ def fit_scenario(trajectories: np.ndarray, config: HypothesisConfig,
   return bics, labels[int(np.argmin(bics))]
 
 
-def fit_batch(trajectories: np.ndarray, config: HypothesisConfig,
-              tol: float = 0.0) -> np.ndarray:
+def fit_batch(trajectories: np.ndarray, config: HypothesisConfig, tol: float = 0.0) -> np.ndarray:
   """(B, c_max) BIC of every scenario of (B, N, T, 2) trajectories, one at a time.
 
   BLAS runs single-threaded: on these tiny matrices threads only add overhead

@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy import stats
 import threadpoolctl
+from scipy import stats
 from sklearn import mixture
 
 from cvmdx_jax.multimodal import gmm
@@ -50,21 +50,28 @@ def test_farthest_point_seeds_hand_worked():
 @pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
 def test_em_matches_sklearn_from_same_start():
   rng = np.random.default_rng(2)
-  sets = np.concatenate([rng.normal(size=(20, 4, 2)) * 0.3,
-                         rng.normal(size=(20, 5, 2)) + 1.0], axis=1)
+  sets = np.concatenate(
+      [rng.normal(size=(20, 4, 2)) * 0.3, rng.normal(size=(20, 5, 2)) + 1.0], axis=1
+  )
   for c in (2, 3):
     fit = jax.jit(jax.vmap(lambda p, c=c: gmm.fit(p, c, 3, REG, 30)))
     result = fit(jnp.asarray(sets, jnp.float32))
     with threadpoolctl.threadpool_limits(1):
       for i, points in enumerate(sets):
-        init = oracle.initial_parameters(
-            points, oracle.farthest_point_labels(points, c), c, REG)
-        model = mixture.GaussianMixture(c, covariance_type="full", reg_covar=REG, tol=0.0,
-                                        max_iter=30, **init).fit(points)
-        np.testing.assert_allclose(float(result.log_likelihood[i]), model.score(points) * 9,
-                                   rtol=1e-4, atol=1e-3, err_msg=f"set {i}, C={c}")
-        np.testing.assert_allclose(np.asarray(result.mixture.weights[i, :c]), model.weights_,
-                                   atol=1e-4)
+        init = oracle.initial_parameters(points, oracle.farthest_point_labels(points, c), c, REG)
+        model = mixture.GaussianMixture(
+            c, covariance_type="full", reg_covar=REG, tol=0.0, max_iter=30, **init
+        ).fit(points)
+        np.testing.assert_allclose(
+            float(result.log_likelihood[i]),
+            model.score(points) * 9,
+            rtol=1e-4,
+            atol=1e-3,
+            err_msg=f"set {i}, C={c}",
+        )
+        np.testing.assert_allclose(
+            np.asarray(result.mixture.weights[i, :c]), model.weights_, atol=1e-4
+        )
 
 
 def test_degenerate_sets_stay_finite():
@@ -75,8 +82,7 @@ def test_degenerate_sets_stay_finite():
       result = _fit(points, c)
       assert np.isfinite(float(result.log_likelihood))
       np.testing.assert_allclose(float(jnp.sum(result.mixture.weights)), 1.0, rtol=1e-6)
-      np.testing.assert_allclose(np.asarray(result.responsibilities.sum(axis=1)), 1.0,
-                                 rtol=1e-5)
+      np.testing.assert_allclose(np.asarray(result.responsibilities.sum(axis=1)), 1.0, rtol=1e-5)
       assert np.all(np.asarray(result.responsibilities[:, c:]) == 0.0)
   # All points identical: every component is the floor Gaussian at that point.
   want = 9 * stats.multivariate_normal([1.0, 1.0], REG * np.eye(2)).logpdf([1.0, 1.0])

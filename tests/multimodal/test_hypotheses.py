@@ -7,8 +7,7 @@ import pytest
 from scipy import stats
 
 from cvmdx_jax.config.sampling import HypothesisConfig
-from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import synthetic
+from cvmdx_jax.multimodal import hypotheses, synthetic
 from tests.multimodal import oracle
 
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
@@ -44,8 +43,9 @@ def test_output_contract(sets, hyps):
     for slot in range(k):
       assigned = labels[i] == slot
       np.testing.assert_allclose(probs[i, slot], assigned.mean(), rtol=1e-6)
-      np.testing.assert_allclose(means[i, slot], trajectories[i][assigned].mean(axis=0),
-                                 rtol=1e-5, atol=1e-3)
+      np.testing.assert_allclose(
+          means[i, slot], trajectories[i][assigned].mean(axis=0), rtol=1e-5, atol=1e-3
+      )
 
 
 def test_recovers_true_modes_and_partition(sets, hyps):
@@ -57,8 +57,8 @@ def test_recovers_true_modes_and_partition(sets, hyps):
   labels, probs = np.asarray(hyps.labels), np.asarray(hyps.probs)
   right = np.flatnonzero(found == num_modes)
   same_partition = [
-      all(len(set(labels[i][mode_ids[i] == m])) == 1 for m in range(num_modes[i]))
-      for i in right]
+      all(len(set(labels[i][mode_ids[i] == m])) == 1 for m in range(num_modes[i])) for i in right
+  ]
   assert np.mean(same_partition) >= 0.99
   for i in right[same_partition]:
     shares = np.sort(np.bincount(mode_ids[i], minlength=3) / 9.0)[::-1]
@@ -84,8 +84,11 @@ def test_single_component_bic_is_closed_form_on_sklearn_pca_points(sets, hyps):
 def test_minmax_with_small_floor_over_selects():
   trajectories, num_modes, _ = synthetic.mode_sets(seed=1, num_sets=200)
   physical = np.asarray(fit_hypotheses(trajectories).num_components)
-  minmax = np.asarray(fit_hypotheses(
-      trajectories, config=HypothesisConfig(scaling="minmax", reg_covar=9e-5)).num_components)
+  minmax = np.asarray(
+      fit_hypotheses(
+          trajectories, config=HypothesisConfig(scaling="minmax", reg_covar=9e-5)
+      ).num_components
+  )
   assert np.mean(minmax == num_modes) < 0.8 < np.mean(physical == num_modes)
   assert np.mean(minmax > num_modes) > 2 * np.mean(minmax < num_modes)
 
@@ -98,13 +101,15 @@ def test_no_retrace_for_new_values_of_same_shape(sets):
   fit_hypotheses(jnp.asarray(sets[0][8:16]))
   assert fit_hypotheses._cache_size() == before
   # Translating every sample shifts the means by the same amount.
-  np.testing.assert_allclose(np.asarray(out.means[:, 0]),
-                             np.asarray(fit_hypotheses(first).means[:, 0]) + 5.0, atol=1e-3)
+  np.testing.assert_allclose(
+      np.asarray(out.means[:, 0]), np.asarray(fit_hypotheses(first).means[:, 0]) + 5.0, atol=1e-3
+  )
 
 
 def test_degenerate_identical_samples():
-  trajectories = np.broadcast_to(np.linspace([0.0, 0.0], [150.0, 1.0], 125),
-                                 (2, 9, 125, 2)).astype(np.float32)
+  trajectories = np.broadcast_to(np.linspace([0.0, 0.0], [150.0, 1.0], 125), (2, 9, 125, 2)).astype(
+      np.float32
+  )
   for scaling in ("physical", "minmax"):
     out = fit_hypotheses(trajectories, config=HypothesisConfig(scaling=scaling))
     np.testing.assert_array_equal(np.asarray(out.num_modes), [1, 1])

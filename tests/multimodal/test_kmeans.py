@@ -10,10 +10,7 @@ from sklearn import cluster
 
 from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.config.sampling import HypothesisConfig
-from cvmdx_jax.multimodal import gmm
-from cvmdx_jax.multimodal import hypotheses
-from cvmdx_jax.multimodal import kmeans
-from cvmdx_jax.multimodal import synthetic
+from cvmdx_jax.multimodal import gmm, hypotheses, kmeans, synthetic
 
 KMEANS = HypothesisConfig(method="kmeans")
 fit_hypotheses = jax.jit(hypotheses.fit_hypotheses, static_argnames=("c_max", "config"))
@@ -39,12 +36,12 @@ def test_agrees_with_sklearn_kmeans_from_the_same_seeds(endpoint_weight):
   for trajectories in sets:
     points = np.asarray(kmeans.features(trajectories, endpoint_weight))
     seeds = np.asarray(gmm.farthest_point_seeds(jnp.asarray(points), 3))
-    ref = cluster.KMeans(3, init=points[seeds].astype(np.float64), n_init=1, max_iter=10,
-                         tol=0.0, algorithm="lloyd").fit(points.astype(np.float64))
+    ref = cluster.KMeans(
+        3, init=points[seeds].astype(np.float64), n_init=1, max_iter=10, tol=0.0, algorithm="lloyd"
+    ).fit(points.astype(np.float64))
     centers, labels = kmeans_fit(points, num_clusters=3, num_iters=10)
     np.testing.assert_array_equal(np.asarray(labels), ref.labels_)
-    np.testing.assert_allclose(np.asarray(centers), ref.cluster_centers_, rtol=1e-4,
-                               atol=1e-3)
+    np.testing.assert_allclose(np.asarray(centers), ref.cluster_centers_, rtol=1e-4, atol=1e-3)
 
 
 def test_farthest_point_seeds_are_the_hand_worked_ones():
@@ -76,8 +73,9 @@ def _assert_well_formed(h, trajectories):
     for slot in range(k):
       members = labels[i] == slot
       np.testing.assert_allclose(probs[i, slot], members.mean(), rtol=1e-6)
-      np.testing.assert_allclose(means[i, slot], trajectories[i][members].mean(axis=0),
-                                 rtol=1e-5, atol=1e-4)
+      np.testing.assert_allclose(
+          means[i, slot], trajectories[i][members].mean(axis=0), rtol=1e-5, atol=1e-4
+      )
 
 
 def test_all_samples_identical_give_one_hypothesis():

@@ -3,11 +3,9 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from sklearn import decomposition
-from sklearn import preprocessing
+from sklearn import decomposition, preprocessing
 
-from cvmdx_jax.multimodal import pca
-from cvmdx_jax.multimodal import scaling
+from cvmdx_jax.multimodal import pca, scaling
 
 
 def test_minmax_matches_sklearn_per_scenario():

@@ -20,10 +20,13 @@ def _baseline_run(root: Path) -> Path:
   return run
 
 
-@pytest.mark.parametrize("read", [
-    lambda run: loaders.read_run_config(run, DiffusionRunConfig, "diffusion"),
-    bundles.load_denoiser,  # evaluate --diffusion_dir, distill's teacher
-])
+@pytest.mark.parametrize(
+    "read",
+    [
+        lambda run: loaders.read_run_config(run, DiffusionRunConfig, "diffusion"),
+        bundles.load_denoiser,  # evaluate --diffusion_dir, distill's teacher
+    ],
+)
 def test_a_baseline_run_where_a_diffusion_run_is_expected(tmp_path, read):
   run = _baseline_run(tmp_path)
   with pytest.raises(UserError) as info:

@@ -48,9 +48,11 @@ def other_tokenizer(tiny_runs, tmp_path_factory):
 
 def _snapshot(directory: Path) -> dict[str, tuple[bytes, int]]:
   """{relative path: (bytes, mtime_ns)} of every file except the lock (`locking`)."""
-  return {str(p.relative_to(directory)): (p.read_bytes(), p.stat().st_mtime_ns)
-          for p in sorted(directory.rglob("*"))
-          if p.is_file() and not p.name.startswith(locking.LOCK_NAME)}
+  return {
+      str(p.relative_to(directory)): (p.read_bytes(), p.stat().st_mtime_ns)
+      for p in sorted(directory.rglob("*"))
+      if p.is_file() and not p.name.startswith(locking.LOCK_NAME)
+  }
 
 
 def _flip_byte(path: Path, offset: int) -> None:
@@ -62,24 +64,33 @@ def _flip_byte(path: Path, offset: int) -> None:
 def test_refused_tokenizer_resume_leaves_the_directory_unchanged(runs):
   workdir = runs / "tokenizer"
   before = _snapshot(workdir)
-  assert {"tokenizer.json", "checksums.json", "metrics.jsonl", "tokens/train.npz",
-          "tokens/gaussians.npz"} <= set(before)
+  assert {
+      "tokenizer.json",
+      "checksums.json",
+      "metrics.jsonl",
+      "tokens/train.npz",
+      "tokens/gaussians.npz",
+  } <= set(before)
   other_q = fixtures_runs.tokenizer_config_for(runs / "data", "tiny,q=5")
   other_size = fixtures_runs.tokenizer_config_for(runs / "data")
   other_size.model.encoder.latent_dim = 6
   # same fingerprint, other loop settings
   other_batch = fixtures_runs.tokenizer_config_for(runs / "data")
   other_batch.train.batch_size *= 2
-  for config, differing in ((other_q, "codebook_size"), (other_size, "latent_dim"),
-                            (other_batch, "batch_size")):
+  for config, differing in (
+      (other_q, "codebook_size"),
+      (other_size, "latent_dim"),
+      (other_batch, "batch_size"),
+  ):
     with pytest.raises(CheckpointMismatchError, match=differing):
       fixtures_runs.train_tokenizer(config, workdir)
     assert _snapshot(workdir) == before, differing
   splits = {s: dataset.load_split(runs / "data", s) for s in ("train", "val")}
   splits["train"] = splits["train"].take(np.arange(len(splits["train"]) - 1))  # other data
   with pytest.raises(CheckpointMismatchError, match="dataset_id"):
-    fixtures_runs.train_tokenizer(fixtures_runs.tokenizer_config_for(runs / "data"), workdir,
-                                  splits=splits)
+    fixtures_runs.train_tokenizer(
+        fixtures_runs.tokenizer_config_for(runs / "data"), workdir, splits=splits
+    )
   assert _snapshot(workdir) == before
 
 
@@ -92,8 +103,11 @@ def test_refused_diffusion_resume_leaves_the_directory_unchanged(runs, other_tok
   other_size = _diff_config(runs)
   other_size.model.base_channels *= 2
   other_tokens = _diff_config(runs, other_tokenizer)
-  for config, differing in ((other_scale, "control_scale"), (other_size, "other model size"),
-                            (other_tokens, "params_id")):
+  for config, differing in (
+      (other_scale, "control_scale"),
+      (other_size, "other model size"),
+      (other_tokens, "params_id"),
+  ):
     with pytest.raises(CheckpointMismatchError, match=differing):
       fixtures_runs.train_diffusion(config, workdir)
     assert _snapshot(workdir) == before, differing
@@ -112,9 +126,14 @@ def test_finished_run_rerun_with_its_config_still_verifies(runs, tmp_path):
     Predictor.load(runs / "tokenizer", workdir)
 
 
-@pytest.mark.parametrize("run,name", [
-    ("tokenizer", "tokenizer.json"), ("tokenizer", "tokens/gaussians.npz"),
-    ("diffusion", "config.json")])
+@pytest.mark.parametrize(
+    "run,name",
+    [
+        ("tokenizer", "tokenizer.json"),
+        ("tokenizer", "tokens/gaussians.npz"),
+        ("diffusion", "config.json"),
+    ],
+)
 def test_a_flipped_byte_in_a_run_file_is_refused_naming_it(runs, tmp_path, run, name):
   for offset in (5, -40):  # in the first field and near the end of the file
     shutil.rmtree(tmp_path / run, ignore_errors=True)
@@ -140,8 +159,11 @@ def test_a_flipped_byte_in_a_tokens_file_is_refused_naming_it(runs, tmp_path):
 def test_a_flipped_byte_anywhere_in_a_checkpoint_is_refused_naming_the_file(runs, tmp_path, run):
   load = load_tokenizer if run == "tokenizer" else load_denoiser
   step_dir = next((runs / run / "checkpoints").iterdir())
-  files = sorted(p.relative_to(runs / run) for p in step_dir.rglob("*")
-                 if p.is_file() and p.name != checksums.MANIFEST)
+  files = sorted(
+      p.relative_to(runs / run)
+      for p in step_dir.rglob("*")
+      if p.is_file() and p.name != checksums.MANIFEST
+  )
   assert any(f.parent.name == "d" for f in files)  # orbax's array data are among them
   for i, name in enumerate(files):
     shutil.rmtree(tmp_path / run, ignore_errors=True)
@@ -158,8 +180,11 @@ def test_a_checkpoint_step_records_the_sha256_of_every_file_orbax_wrote(tmp_path
   step = tmp_path / "1"
   manifest = json.loads((step / checksums.MANIFEST).read_text())
   # independent reference: hashlib over each file's bytes
-  assert manifest == {p.relative_to(step).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-                      for p in step.rglob("*") if p.is_file() and p.name != checksums.MANIFEST}
+  assert manifest == {
+      p.relative_to(step).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+      for p in step.rglob("*")
+      if p.is_file() and p.name != checksums.MANIFEST
+  }
   assert "_CHECKPOINT_METADATA" in manifest
   rep = sharding.replicated(sharding.data_mesh())
   abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), state)
@@ -175,7 +200,8 @@ def test_a_checkpoint_step_records_the_sha256_of_every_file_orbax_wrote(tmp_path
 
 
 def test_denoiser_refuses_a_tokeniser_of_same_fingerprint_and_step_but_other_weights(
-    runs, other_tokenizer):
+    runs, other_tokenizer
+):
   a = load_tokenizer(runs / "tokenizer")
   b = load_tokenizer(other_tokenizer)
   assert a.fingerprint == b.fingerprint and a.checkpoint.step == b.checkpoint.step
@@ -223,6 +249,7 @@ def test_a_failed_group_write_leaves_files_and_manifest_as_they_were(tmp_path, m
       if Path(path).suffix == ".png":
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
       yield f
+
   monkeypatch.setattr(atomic, "writing", full_at_png)
   files = {tmp_path / "metrics.json": b'{"a": 2}\n', tmp_path / "old.png": b"new"}
   for directory in (tmp_path, tmp_path / "fresh"):

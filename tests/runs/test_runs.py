@@ -23,17 +23,24 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _imported(modules: str, prefix: str) -> list[str]:
-  code = (f"import sys, {modules}; "
-          f"print(sorted(m for m in sys.modules if m.startswith({prefix!r})))")
-  proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
-                        text=True, timeout=300, env=environ())
+  code = (
+      f"import sys, {modules}; "
+      f"print(sorted(m for m in sys.modules if m.startswith({prefix!r})))"
+  )
+  proc = subprocess.run(
+      [sys.executable, "-c", code],
+      cwd=REPO,
+      capture_output=True,
+      text=True,
+      timeout=300,
+      env=environ(),
+  )
   assert proc.returncode == 0, proc.stderr[-2000:]
   return eval(proc.stdout.strip().splitlines()[-1])  # a printed list of names
 
 
 def test_prediction_path_does_not_import_the_trainers():
-  assert _imported("cvmdx_jax.inference.predictor, cvmdx_jax.runs.loaders",
-                   "cvmdx_jax.train") == []
+  assert _imported("cvmdx_jax.inference.predictor, cvmdx_jax.runs.loaders", "cvmdx_jax.train") == []
 
 
 def test_the_training_loop_does_not_import_the_inference_path():
@@ -46,15 +53,20 @@ def test_the_trainers_and_the_run_configs_do_not_load_the_sampler():
   imports no inference code, and a trainer at most the bundles (a distillation's teacher),
   never the sampler or the predictor."""
   assert _imported("cvmdx_jax.config.runs", "cvmdx_jax.inference") == []
-  trainers = ("cvmdx_jax.train.tokenizer, cvmdx_jax.train.diffusion, cvmdx_jax.train.distill, "
-              "cvmdx_jax.train.baseline")
-  assert _imported(trainers, "cvmdx_jax.inference") in ([], ["cvmdx_jax.inference",
-                                                             "cvmdx_jax.inference.bundles"])
+  trainers = (
+      "cvmdx_jax.train.tokenizer, cvmdx_jax.train.diffusion, cvmdx_jax.train.distill, "
+      "cvmdx_jax.train.baseline"
+  )
+  assert _imported(trainers, "cvmdx_jax.inference") in (
+      [],
+      ["cvmdx_jax.inference", "cvmdx_jax.inference.bundles"],
+  )
 
 
 def test_to_dataclass_builds_nested_sections_and_names_unknown_keys():
-  section = ml_collections.ConfigDict({"steps": 4, "guidance": {"w_min": 0.3},
-                                       "hypotheses": {"c_max": 2}})
+  section = ml_collections.ConfigDict(
+      {"steps": 4, "guidance": {"w_min": 0.3}, "hypotheses": {"c_max": 2}}
+  )
   out = to_dataclass(SamplingConfig, section, clip_x0=0.5)
   assert out.steps == 4 and out.clip_x0 == 0.5
   assert out.guidance == GuidanceConfig(w_min=0.3) and out.hypotheses.c_max == 2
@@ -107,16 +119,19 @@ def _with(config, field: str, value):
   return config
 
 
-@pytest.mark.parametrize("field, value, problem", [
-    ("train.num_epochs", -3, "must be > 0"),
-    ("diffusion.cond_drop_prob", 1.0, "must be in [0, 1)"),
-    ("diffusion.class_weights", (1.0, 0.0, 1.0), "must be > 0"),
-    ("diffusion.class_weights", (1.0, 2.0), "need 3 positive finite weights"),
-    ("model.dropout", float("nan"), "must be finite"),
-    ("sampling.guidance.t_c", 0.0, "must be > 0"),
-    ("sampling.hypotheses.endpoint_weight", 1.5, "must be in [0, 1]"),
-    ("seed", 2**32, "must be in [0, 2**32)"),
-])
+@pytest.mark.parametrize(
+    "field, value, problem",
+    [
+        ("train.num_epochs", -3, "must be > 0"),
+        ("diffusion.cond_drop_prob", 1.0, "must be in [0, 1)"),
+        ("diffusion.class_weights", (1.0, 0.0, 1.0), "must be > 0"),
+        ("diffusion.class_weights", (1.0, 2.0), "need 3 positive finite weights"),
+        ("model.dropout", float("nan"), "must be finite"),
+        ("sampling.guidance.t_c", 0.0, "must be > 0"),
+        ("sampling.hypotheses.endpoint_weight", 1.5, "must be in [0, 1]"),
+        ("seed", 2**32, "must be in [0, 2**32)"),
+    ],
+)
 def test_a_diffusion_field_out_of_range_is_named_by_its_dotted_path(field, value, problem):
   with pytest.raises(ConfigFieldError) as error:
     DiffusionRunConfig.from_config(_with(diffusion_config.get_config("tiny"), field, value))
@@ -131,9 +146,16 @@ def test_distill_teacher_substeps_must_be_an_integer_of_at_least_two(value):
   assert DistillRunConfig(teacher_substeps=5).teacher_substeps == 5
 
 
-@pytest.mark.parametrize("field, value", [
-    ("quantizer.usage_decay", 1.5), ("model.encoder.latent_dim", 0),
-    ("uncertainty.ridge", -1.0), ("encode_batch", 0), ("train.grad_clip", -1.0)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("quantizer.usage_decay", 1.5),
+        ("model.encoder.latent_dim", 0),
+        ("uncertainty.ridge", -1.0),
+        ("encode_batch", 0),
+        ("train.grad_clip", -1.0),
+    ],
+)
 def test_a_tokenizer_field_out_of_range_is_named_by_its_dotted_path(field, value):
   with pytest.raises(ConfigFieldError) as error:
     TokenizerRunConfig.from_config(_with(tokenizer_config.get_config("tiny"), field, value))
@@ -148,7 +170,8 @@ def test_the_diffusion_fingerprint_holds_the_whole_unet_config():
   fingerprint = fingerprints.diffusion(config, "data", meta)
   assert fingerprint["model"] == dataclasses.asdict(config.model)
   assert fingerprint["intent_conditioning"] is True
-  wide = dataclasses.replace(config, model=dataclasses.replace(config.model,
-                                                               cond_hidden=(256, 512)))
+  wide = dataclasses.replace(
+      config, model=dataclasses.replace(config.model, cond_hidden=(256, 512))
+  )
   assert fingerprints.diffusion(wide, "data", meta) != fingerprint
   assert fingerprints.diffusion(wide, "data", meta)["model"]["cond_hidden"] == (256, 512)

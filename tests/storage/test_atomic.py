@@ -56,9 +56,15 @@ def test_mode_is_what_plain_open_creates(tmp_path, umask):
       f.write("x")
     atomic.write_text(tmp_path / "a.txt", "x")
     atomic.append_jsonl(tmp_path / "log.jsonl", {"epoch": 1})
-    tokens.save_tokens(tmp_path / "tokens" / "test.npz",
-                       tokens.Tokens(q=np.zeros(2, np.int32), z_hat=np.zeros((2, 3), np.float32),
-                                     delta=np.zeros(2, np.float32)), {"dataset_id": "x"})
+    tokens.save_tokens(
+        tmp_path / "tokens" / "test.npz",
+        tokens.Tokens(
+            q=np.zeros(2, np.int32),
+            z_hat=np.zeros((2, 3), np.float32),
+            delta=np.zeros(2, np.float32),
+        ),
+        {"dataset_id": "x"},
+    )
   finally:
     os.umask(old)
   want = 0o666 & ~umask
@@ -139,16 +145,19 @@ def test_write_all_is_all_or_nothing(tmp_path, monkeypatch):
   with pytest.raises(OSError, match="No space left"):
     atomic.write_all(files)
   assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == {
-      name: b"old " + name.encode() for name in names}  # no temporary either
+      name: b"old " + name.encode() for name in names
+  }  # no temporary either
   monkeypatch.setattr(atomic, "writing", real)
   renamed = []
   replace = os.replace
-  monkeypatch.setattr(atomic.os, "replace", lambda a, b: (renamed.append(Path(b).name),
-                                                          replace(a, b)))
+  monkeypatch.setattr(
+      atomic.os, "replace", lambda a, b: (renamed.append(Path(b).name), replace(a, b))
+  )
   atomic.write_all(files)
   assert renamed == ["b.png", "a.png", "metrics.json"]  # the first one last
   assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == {
-      name: b"new " + name.encode() for name in names}
+      name: b"new " + name.encode() for name in names
+  }
 
 
 def test_writing_rejects_other_modes(tmp_path):

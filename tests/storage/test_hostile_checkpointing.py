@@ -29,8 +29,7 @@ def _abstract(state):
 # orbax's event loop, closed by the failed save, reports the late writer's end as unraisable
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 @pytest.mark.parametrize("late_s", [0.0, 0.5])
-def test_a_save_failing_on_a_full_disk_leaves_no_temporary_directory(tmp_path, monkeypatch,
-                                                                     late_s):
+def test_a_save_failing_on_a_full_disk_leaves_no_temporary_directory(tmp_path, monkeypatch, late_s):
   late_writes = []
 
   async def late_sharding_writer(shardings, infos, *args, **kwargs):
@@ -45,8 +44,7 @@ def test_a_save_failing_on_a_full_disk_leaves_no_temporary_directory(tmp_path, m
 
   with checkpointing.Checkpoints(tmp_path) as ckpts:
     ckpts.save(1, _state(), {"q": 1})
-    monkeypatch.setattr(jax_array_handlers, "_async_serialize_shardings",
-                        late_sharding_writer)
+    monkeypatch.setattr(jax_array_handlers, "_async_serialize_shardings", late_sharding_writer)
 
     async def full_disk(self, *args, **kwargs):
       raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -67,8 +65,9 @@ def test_a_checkpoint_holding_nan_is_refused_naming_the_leaf(tmp_path):
     ckpts.save(1, {"w": jnp.ones(3), "best": jnp.asarray(jnp.inf)}, {"q": 1})
     ckpts.save(2, {"w": jnp.asarray([1.0, jnp.nan, 2.0]), "best": jnp.asarray(1.0)}, {"q": 2})
   abstract = _abstract({"w": jnp.ones(3), "best": jnp.asarray(1.0)})
-  with pytest.raises(checkpointing.CheckpointMismatchError,
-                     match=r"checkpoint .*/2 holds NaN in 'w'"):
+  with pytest.raises(
+      checkpointing.CheckpointMismatchError, match=r"checkpoint .*/2 holds NaN in 'w'"
+  ):
     checkpointing.load_latest(tmp_path, abstract)
   state, meta = checkpointing.Checkpoints(tmp_path, writable=False).load(1, abstract)
   assert meta == {"q": 1} and float(state["best"]) == float("inf")

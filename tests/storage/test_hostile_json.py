@@ -12,14 +12,30 @@ from cvmdx_jax.storage import atomic
 def _strict(text: str):
   def refuse(token):
     raise ValueError(f"non-standard JSON token {token}")
+
   return json.loads(text, parse_constant=refuse)
 
 
-VALUE = {"ade": 1.5, "nll": float("nan"), "per_class": [float("inf"), 2.0, -float("inf")],
-         "ece": np.float64("nan"), "nested": {"t": (float("nan"), 3)}, "n": 7, "ok": True,
-         "name": "NaN"}
-EXPECTED = {"ade": 1.5, "nll": None, "per_class": [None, 2.0, None], "ece": None,
-            "nested": {"t": [None, 3]}, "n": 7, "ok": True, "name": "NaN"}
+VALUE = {
+    "ade": 1.5,
+    "nll": float("nan"),
+    "per_class": [float("inf"), 2.0, -float("inf")],
+    "ece": np.float64("nan"),
+    "nested": {"t": (float("nan"), 3)},
+    "n": 7,
+    "ok": True,
+    "name": "NaN",
+}
+EXPECTED = {
+    "ade": 1.5,
+    "nll": None,
+    "per_class": [None, 2.0, None],
+    "ece": None,
+    "nested": {"t": [None, 3]},
+    "n": 7,
+    "ok": True,
+    "name": "NaN",
+}
 
 
 def test_write_json_writes_null_for_non_finite_floats(tmp_path):

@@ -21,8 +21,10 @@ from tests.subprocess_env import environ
 from tests.train import toy
 
 REPO = Path(__file__).resolve().parents[2]
-_HOLDER = ("import sys, time\nfrom cvmdx_jax.storage import locking\n"
-           "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n")
+_HOLDER = (
+    "import sys, time\nfrom cvmdx_jax.storage import locking\n"
+    "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n"
+)
 
 
 @pytest.fixture
@@ -31,8 +33,12 @@ def holder():
   procs = []
 
   def start(workdir):
-    proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(workdir)], text=True,
-                            stdout=subprocess.PIPE, env=environ())
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(workdir)],
+        text=True,
+        stdout=subprocess.PIPE,
+        env=environ(),
+    )
     procs.append(proc)
     assert proc.stdout.readline().strip() == "held"
     return proc
@@ -46,8 +52,10 @@ def holder():
 
 def _snapshot(root: Path) -> dict:
   """{relative path: (bytes, mtime_ns)} of every file under root, and every directory."""
-  return {str(p.relative_to(root)): (p.read_bytes(), p.stat().st_mtime_ns) if p.is_file()
-          else "dir" for p in root.rglob("*")}
+  return {
+      str(p.relative_to(root)): (p.read_bytes(), p.stat().st_mtime_ns) if p.is_file() else "dir"
+      for p in root.rglob("*")
+  }
 
 
 def test_second_process_is_refused_naming_the_pid_and_sigkill_frees_the_lock(tmp_path, holder):
@@ -65,8 +73,15 @@ def test_second_process_is_refused_naming_the_pid_and_sigkill_frees_the_lock(tmp
 
 def test_refused_training_leaves_the_run_byte_identical(tmp_path, holder):
   init_fn, step_fn = toy.make_task()
-  args = dict(workdir=tmp_path, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(20),
-              batch_size=4, seed=0, fingerprint={"toy": 1})
+  args = dict(
+      workdir=tmp_path,
+      init_fn=init_fn,
+      step_fn=step_fn,
+      data=toy.make_data(20),
+      batch_size=4,
+      seed=0,
+      fingerprint={"toy": 1},
+  )
   toy.train(num_epochs=1, **args)
   before = _snapshot(tmp_path)
   proc = holder(tmp_path)
@@ -77,8 +92,7 @@ def test_refused_training_leaves_the_run_byte_identical(tmp_path, holder):
 
 
 def _tokenizer(workdir):
-  tokenizer.train(TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")),
-                               workdir)
+  tokenizer.train(TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")), workdir)
 
 
 def _diffusion(workdir):
@@ -90,8 +104,12 @@ def _dataset(workdir):
 
 
 def _evaluation(workdir):
-  report.run(tokenizer_dir=workdir / "t", diffusion_dir=workdir / "d", data_dir=workdir / "x",
-             workdir=workdir)
+  report.run(
+      tokenizer_dir=workdir / "t",
+      diffusion_dir=workdir / "d",
+      data_dir=workdir / "x",
+      workdir=workdir,
+  )
 
 
 @pytest.mark.parametrize("command", [_tokenizer, _diffusion, _dataset, _evaluation])
@@ -107,10 +125,19 @@ def test_every_writing_command_locks_its_workdir_before_writing(tmp_path, holder
 def test_evaluate_script_answers_a_locked_workdir_with_one_line_and_exit_2(tmp_path, holder):
   proc = holder(tmp_path / "eval")
   out = subprocess.run(
-      [sys.executable, str(REPO / "experiments" / "evaluate.py"), f"--tokenizer_dir={tmp_path}",
-       f"--diffusion_dir={tmp_path}", f"--data_dir={tmp_path}", f"--workdir={tmp_path}/eval"],
-      capture_output=True, text=True, timeout=300,
-      env=environ(JAX_PLATFORMS="cpu"))
+      [
+          sys.executable,
+          str(REPO / "experiments" / "evaluate.py"),
+          f"--tokenizer_dir={tmp_path}",
+          f"--diffusion_dir={tmp_path}",
+          f"--data_dir={tmp_path}",
+          f"--workdir={tmp_path}/eval",
+      ],
+      capture_output=True,
+      text=True,
+      timeout=300,
+      env=environ(JAX_PLATFORMS="cpu"),
+  )
   assert out.returncode == 2
   assert out.stderr.startswith("evaluate: error: workdir ") and f"pid {proc.pid}" in out.stderr
   assert "Traceback" not in out.stderr

@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 
 from cvmdx_jax import constants
-from cvmdx_jax.data import cache, dataset as dataset_lib
+from cvmdx_jax.data import cache
+from cvmdx_jax.data import dataset as dataset_lib
 from cvmdx_jax.data.scenarios import from_arrays
 from cvmdx_jax.runs import tokens as tokens_lib
 
 LANE_M = 3.5
 NUM_TOKENS = 4
-TOKENIZER_CHECKPOINT = {"fingerprint": {"kind": "synthetic"}, "step": 7,
-                        "params_id": "0" * 64}
+TOKENIZER_CHECKPOINT = {"fingerprint": {"kind": "synthetic"}, "step": 7, "params_id": "0" * 64}
 
 
 def make_scenarios(m: int, seed: int):
@@ -36,20 +36,28 @@ def make_scenarios(m: int, seed: int):
   end_y = np.array([0.0, -LANE_M, LANE_M])[label]
   future = np.stack([v0[:, None] * t, end_y[:, None] * (3 * s**2 - 2 * s**3)], axis=-1)
   zeros = np.zeros((m, constants.T_PRED, 2), np.float32)
-  return from_arrays(xi=xi, mask=mask, future=future, controls=zeros, v0=v0,
-                     psi0=np.zeros(m), label=label)
+  return from_arrays(
+      xi=xi, mask=mask, future=future, controls=zeros, v0=v0, psi0=np.zeros(m), label=label
+  )
 
 
 def write(data_dir: Path, tokenizer_dir: Path, sizes=(("train", 48), ("val", 24))) -> None:
   """Writes the dataset cache under `data_dir` and its tokens under `tokenizer_dir`."""
   splits = {name: make_scenarios(m, seed) for seed, (name, m) in enumerate(sizes)}
   cache.write(Path(data_dir) / "cache", splits, {"synthetic": True}, [])
-  meta = {"dataset_id": dataset_lib.dataset_id(data_dir), "codebook_size": NUM_TOKENS,
-          "checkpoint": TOKENIZER_CHECKPOINT}
+  meta = {
+      "dataset_id": dataset_lib.dataset_id(data_dir),
+      "codebook_size": NUM_TOKENS,
+      "checkpoint": TOKENIZER_CHECKPOINT,
+  }
   for name, s in splits.items():
     rng = np.random.default_rng(len(s))
     q = np.where((np.arange(len(s)) // 3) % 3 < 2, s.label, NUM_TOKENS - 1).astype(np.int32)
-    toks = tokens_lib.Tokens(q=q, z_hat=np.zeros((len(s), 2), np.float32),
-                             delta=rng.uniform(0, 5, len(s)).astype(np.float32))
-    tokens_lib.save_tokens(tokens_lib.tokens_path(tokenizer_dir, name), toks,
-                           {**meta, "split": name})
+    toks = tokens_lib.Tokens(
+        q=q,
+        z_hat=np.zeros((len(s), 2), np.float32),
+        delta=rng.uniform(0, 5, len(s)).astype(np.float32),
+    )
+    tokens_lib.save_tokens(
+        tokens_lib.tokens_path(tokenizer_dir, name), toks, {**meta, "split": name}
+    )

@@ -1,4 +1,5 @@
-"""Tests of cvmdx_jax.storage.checkpointing and storage.identity: round trips and the mismatch errors users see."""
+"""Tests of cvmdx_jax.storage.checkpointing and storage.identity: round trips and the mismatch
+errors users see."""
 
 import logging
 
@@ -57,11 +58,16 @@ def test_partial_load_reads_only_the_requested_leaves(tmp_path):
 
 def test_identity_check_names_every_differing_key():
   saved = {"model": {"q": 60, "latent": 16}, "dataset": "sumo-a", "scale": [4.0, 0.7]}
-  identity.check(saved, {"dataset": "sumo-a", "model": {"latent": 16, "q": 60},
-                         "scale": (4.0, 0.7)}, "ck")  # tuples compare as JSON lists
+  identity.check(
+      saved, {"dataset": "sumo-a", "model": {"latent": 16, "q": 60}, "scale": (4.0, 0.7)}, "ck"
+  )  # tuples compare as JSON lists
   with pytest.raises(CheckpointMismatchError) as e:
-    identity.check(saved, {"model": {"q": 90, "latent": 16}, "dataset": "highd",
-                           "extra": 1, "scale": [4.0, 0.7]}, "ck/5", CheckpointMismatchError)
+    identity.check(
+        saved,
+        {"model": {"q": 90, "latent": 16}, "dataset": "highd", "extra": 1, "scale": [4.0, 0.7]},
+        "ck/5",
+        CheckpointMismatchError,
+    )
   msg = str(e.value)
   assert "ck/5" in msg and "model.q: saved 60, expected 90" in msg
   assert "dataset: saved 'sumo-a', expected 'highd'" in msg and "extra" in msg
@@ -87,8 +93,13 @@ def test_content_id_covers_paths_dtypes_shapes_and_bytes():
   same = {"n": 3, "w": jnp.arange(6, dtype=jnp.float32).reshape(2, 3)}  # key order, jax array
   assert identity.content_id(a) == identity.content_id(same)
   assert len(identity.content_id(a)) == 64
-  for other in ({**a, "w": a["w"].reshape(3, 2)}, {**a, "w": a["w"].astype(np.float64)},
-                {**a, "n": 4}, {"v": a["w"], "n": 3}, {**a, "w": a["w"] + 1}):
+  for other in (
+      {**a, "w": a["w"].reshape(3, 2)},
+      {**a, "w": a["w"].astype(np.float64)},
+      {**a, "n": 4},
+      {"v": a["w"], "n": 3},
+      {**a, "w": a["w"] + 1},
+  ):
     assert identity.content_id(other) != identity.content_id(a)
 
 
@@ -99,8 +110,9 @@ def test_load_of_missing_step_and_garbled_checkpoint(tmp_path):
   reader = checkpointing.Checkpoints(tmp_path, writable=False)
   with pytest.raises(CheckpointMismatchError, match="no complete checkpoint"):
     reader.load(2, _abstract(state))
-  arrays = [f for f in (tmp_path / "1" / "state").rglob("*")
-            if f.is_file() and f.parent.name == "d"]
+  arrays = [
+      f for f in (tmp_path / "1" / "state").rglob("*") if f.is_file() and f.parent.name == "d"
+  ]
   assert arrays
   for f in arrays:  # the array data only: metadata still reads, the load fails
     f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 2])
@@ -118,7 +130,8 @@ def test_relative_root_works(tmp_path, monkeypatch):
   with checkpointing.Checkpoints("runs/x/checkpoints", keep=1) as ckpts:
     ckpts.save(1, state, {"q": 1})
   restored, _ = checkpointing.Checkpoints("runs/x/checkpoints", writable=False).load(
-      1, _abstract(state))
+      1, _abstract(state)
+  )
   np.testing.assert_array_equal(restored["params"]["w"], state["params"]["w"])
 
 
@@ -126,8 +139,9 @@ def _orbax_records(caplog):
   return [r for r in caplog.records if "orbax" in r.pathname and r.levelno >= logging.WARNING]
 
 
-def test_a_failed_save_leaves_no_temporary_directory_and_no_orbax_errors(tmp_path, monkeypatch,
-                                                                          caplog):
+def test_a_failed_save_leaves_no_temporary_directory_and_no_orbax_errors(
+    tmp_path, monkeypatch, caplog
+):
   from orbax.checkpoint._src.path import atomicity  # the rename that commits a step
 
   state = _state()

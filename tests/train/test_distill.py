@@ -12,8 +12,14 @@ from cvmdx_jax.diffusion import distillation
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import distill
 
-TINY = UNetConfig(num_tokens=5, base_channels=16, channel_mult=(1, 2),
-                         attention_levels=(1,), num_heads=2, groups=8)
+TINY = UNetConfig(
+    num_tokens=5,
+    base_channels=16,
+    channel_mult=(1, 2),
+    attention_levels=(1,),
+    num_heads=2,
+    groups=8,
+)
 
 
 @pytest.mark.parametrize("features,hidden", [(0, ()), (3, ()), (0, (16, 8)), (3, (16, 8))])
@@ -24,8 +30,9 @@ def test_the_student_starts_as_the_teachers_conditional_branch(features, hidden)
   # a trained-looking teacher: its zero-initialised output layer would hide everything
   leaves, tree = jax.tree.flatten(teacher)
   keys = jax.random.split(jax.random.key(4), len(leaves))
-  teacher = jax.tree.unflatten(tree, [p + 0.1 * jax.random.normal(k, p.shape)
-                                      for p, k in zip(leaves, keys)])
+  teacher = jax.tree.unflatten(
+      tree, [p + 0.1 * jax.random.normal(k, p.shape) for p, k in zip(leaves, keys)]
+  )
   student_graphdef, fresh = unet1d.init_unet(student_cfg, jax.random.key(1))
   student = distill.student_params(teacher, fresh)
   x = jax.random.normal(jax.random.key(2), (4, 125, 2))
@@ -34,12 +41,18 @@ def test_the_student_starts_as_the_teachers_conditional_branch(features, hidden)
   want = unet1d.apply_unet(graphdef, teacher, x, t, q, cond=ego)
   assert float(jnp.abs(want).mean()) > 1e-2
   for w in (0.0, 0.37, 2.0):
-    got = unet1d.apply_unet(student_graphdef, student, x, t, q,
-                            cond=distillation.student_cond(ego, jnp.full((4,), w)))
+    got = unet1d.apply_unet(
+        student_graphdef, student, x, t, q, cond=distillation.student_cond(ego, jnp.full((4,), w))
+    )
     np.testing.assert_allclose(got, want, atol=1e-6, rtol=1e-6)
   # and w can move it: the new inputs are trainable, not frozen zeros everywhere
-  grads = jax.grad(lambda p: jnp.sum(unet1d.apply_unet(
-      student_graphdef, p, x, t, q, cond=distillation.student_cond(ego, jnp.ones(4)))))(student)
+  grads = jax.grad(
+      lambda p: jnp.sum(
+          unet1d.apply_unet(
+              student_graphdef, p, x, t, q, cond=distillation.student_cond(ego, jnp.ones(4))
+          )
+      )
+  )(student)
   assert float(jnp.abs(grads["cond_mlp2"]["kernel"]).sum()) > 0
 
 

@@ -33,17 +33,23 @@ def _free_port() -> int:
 def _launch(workdir, processes: int, devices: int = 1, own=(), **args) -> list[subprocess.Popen]:
   """Starts one run of toy_job.py as `processes` processes with `devices` CPU devices each;
   `own[i]` (a dict) adds arguments of process i."""
-  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-                JAX_PLATFORMS="cpu")
+  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
   if processes > 1:
-    env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}",
-               JAX_NUM_PROCESSES=str(processes))
+    env.update(
+        JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}", JAX_NUM_PROCESSES=str(processes)
+    )
   cmd = [sys.executable, str(JOB), f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
   own = list(own) + [{}] * (processes - len(own))
-  return [subprocess.Popen(cmd + [f"--{k}={v}" for k, v in own[i].items()],
-                           env={**env, "JAX_PROCESS_ID": str(i)}, text=True,
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-          for i in range(processes)]
+  return [
+      subprocess.Popen(
+          cmd + [f"--{k}={v}" for k, v in own[i].items()],
+          env={**env, "JAX_PROCESS_ID": str(i)},
+          text=True,
+          stdout=subprocess.PIPE,
+          stderr=subprocess.PIPE,
+      )
+      for i in range(processes)
+  ]
 
 
 def _finish(procs) -> list[tuple[int, str, str]]:
@@ -88,9 +94,17 @@ def test_two_processes_match_one_process_and_write_one_run(tmp_path):
 
 def test_a_second_multi_process_run_is_refused_in_every_process(tmp_path):
   holder = subprocess.Popen(
-      [sys.executable, "-c", "import sys, time\nfrom cvmdx_jax.storage import locking\n"
-       "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n",
-       str(tmp_path)], stdout=subprocess.PIPE, text=True, env=environ())
+      [
+          sys.executable,
+          "-c",
+          "import sys, time\nfrom cvmdx_jax.storage import locking\n"
+          "with locking.hold(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(600)\n",
+          str(tmp_path),
+      ],
+      stdout=subprocess.PIPE,
+      text=True,
+      env=environ(),
+  )
   try:
     assert holder.stdout.readline().strip() == "held"
     done = _finish(_launch(tmp_path, 2, epochs=1))
@@ -135,12 +149,17 @@ def test_sigkill_of_one_process_then_relaunch_resumes_bit_identical(tmp_path, vi
   assert [json.loads(line)["epoch"] for line in lines] == [1, 2, 3, 4]
 
 
-@pytest.mark.parametrize("env, match", [
-    ({"JAX_NUM_PROCESSES": "two"}, "JAX_NUM_PROCESSES='two' must be an integer"),
-    ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "0"}, "needs JAX_COORDINATOR_ADDRESS"),
-    ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "2", "JAX_COORDINATOR_ADDRESS": "h:1"},
-     "JAX_PROCESS_ID=2 must be in 0..1"),
-])
+@pytest.mark.parametrize(
+    "env, match",
+    [
+        ({"JAX_NUM_PROCESSES": "two"}, "JAX_NUM_PROCESSES='two' must be an integer"),
+        ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "0"}, "needs JAX_COORDINATOR_ADDRESS"),
+        (
+            {"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "2", "JAX_COORDINATOR_ADDRESS": "h:1"},
+            "JAX_PROCESS_ID=2 must be in 0..1",
+        ),
+    ],
+)
 def test_bad_distributed_environment_is_named(env, match):
   with pytest.raises(ValueError, match=match):
     sharding.initialize_distributed(env)
@@ -165,8 +184,13 @@ def _cluster_env(monkeypatch, **variables: str) -> None:
     monkeypatch.setenv(name, value)
 
 
-SLURM = {"SLURM_JOB_ID": "4711", "SLURM_STEP_NODELIST": "node[003-004],gpu7",
-         "SLURM_NTASKS": "2", "SLURM_PROCID": "1", "SLURM_LOCALID": "0"}
+SLURM = {
+    "SLURM_JOB_ID": "4711",
+    "SLURM_STEP_NODELIST": "node[003-004],gpu7",
+    "SLURM_NTASKS": "2",
+    "SLURM_PROCID": "1",
+    "SLURM_LOCALID": "0",
+}
 
 
 def test_srun_is_detected_through_jax(monkeypatch):
@@ -180,9 +204,13 @@ def test_srun_is_detected_through_jax(monkeypatch):
 
 
 def test_mpirun_is_detected_through_jax(monkeypatch):
-  _cluster_env(monkeypatch, OMPI_MCA_orte_hnp_uri="1531576320.0;tcp://10.96.0.1,10.148.0.1:34911",
-               OMPI_COMM_WORLD_SIZE="2", OMPI_COMM_WORLD_RANK="1",
-               OMPI_COMM_WORLD_LOCAL_RANK="1")
+  _cluster_env(
+      monkeypatch,
+      OMPI_MCA_orte_hnp_uri="1531576320.0;tcp://10.96.0.1,10.148.0.1:34911",
+      OMPI_COMM_WORLD_SIZE="2",
+      OMPI_COMM_WORLD_RANK="1",
+      OMPI_COMM_WORLD_LOCAL_RANK="1",
+  )
   assert sharding.cluster_launcher() == "ompi"
   # JAX: the launcher's first address, port 61440 + (job id // 4096) mod 4096 = 61440 + 1184
   assert sharding.detect_cluster("ompi") == ("10.96.0.1:62624", 2, 1, [1])
@@ -193,20 +221,32 @@ def test_kubernetes_indexed_job_is_detected_through_jax(monkeypatch):
   from types import SimpleNamespace as NS
 
   from jax._src.clusters import k8s_cluster
-  pod = NS(metadata=NS(name="train-1-x7", labels={"job-name": "train"},
-                       owner_references=[NS(controller=True, kind="Job")]),
-           spec=NS(subdomain="jaxpods"))
+
+  pod = NS(
+      metadata=NS(
+          name="train-1-x7",
+          labels={"job-name": "train"},
+          owner_references=[NS(controller=True, kind="Job")],
+      ),
+      spec=NS(subdomain="jaxpods"),
+  )
   job = NS(metadata=NS(name="train", labels={}), spec=NS(parallelism=2))
-  client = NS(CoreV1Api=lambda: NS(list_namespaced_pod=lambda **_: NS(items=[pod])),
-              BatchV1Api=lambda: NS(read_namespaced_job=lambda **_: job),
-              exceptions=NS(ApiException=RuntimeError))
+  client = NS(
+      CoreV1Api=lambda: NS(list_namespaced_pod=lambda **_: NS(items=[pod])),
+      BatchV1Api=lambda: NS(read_namespaced_job=lambda **_: job),
+      exceptions=NS(ApiException=RuntimeError),
+  )
   fake = ModuleType("kubernetes")
   fake.config, fake.client = NS(load_incluster_config=lambda: None), client
   monkeypatch.setitem(sys.modules, "kubernetes", fake)
   monkeypatch.setattr(k8s_cluster.K8sCluster, "_namespace", classmethod(lambda cls: "default"))
   monkeypatch.setattr(socket, "gethostbyname", lambda host: "10.0.0.5")
-  _cluster_env(monkeypatch, KUBERNETES_SERVICE_HOST="10.0.0.1", JOB_COMPLETION_INDEX="1",
-               HOSTNAME="train-1-x7")
+  _cluster_env(
+      monkeypatch,
+      KUBERNETES_SERVICE_HOST="10.0.0.1",
+      JOB_COMPLETION_INDEX="1",
+      HOSTNAME="train-1-x7",
+  )
   try:
     assert sharding.cluster_launcher() == "k8s"
     # JAX: pod 0 of the job under the job's subdomain, its fixed port 55527
@@ -216,10 +256,15 @@ def test_kubernetes_indexed_job_is_detected_through_jax(monkeypatch):
       getattr(k8s_cluster.K8sCluster, name).__func__.cache_clear()
 
 
-@pytest.mark.parametrize("env", [{}, {**SLURM, "SLURM_NTASKS": "1"},
-                                 {"OMPI_MCA_orte_hnp_uri": "1.0;tcp://h:1",
-                                  "OMPI_COMM_WORLD_SIZE": "1"},
-                                 {"KUBERNETES_SERVICE_HOST": "10.0.0.1"}])
+@pytest.mark.parametrize(
+    "env",
+    [
+        {},
+        {**SLURM, "SLURM_NTASKS": "1"},
+        {"OMPI_MCA_orte_hnp_uri": "1.0;tcp://h:1", "OMPI_COMM_WORLD_SIZE": "1"},
+        {"KUBERNETES_SERVICE_HOST": "10.0.0.1"},
+    ],
+)
 def test_a_process_started_alone_is_no_cluster(env):
   assert sharding.cluster_launcher(env) is None  # initialize_distributed does nothing
 
@@ -228,8 +273,10 @@ def _checkpoint(workdir, step: int) -> np.ndarray:
   """Every leaf of a toy run's checkpoint `step`, as one float64 vector."""
   init_fn, _ = toy.make_task()
   rep = sharding.replicated(sharding.data_mesh())
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
-                          jax.eval_shape(init_fn, jax.random.key(0)))
+  abstract = jax.tree.map(
+      lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
+      jax.eval_shape(init_fn, jax.random.key(0)),
+  )
   ckpts = checkpointing.Checkpoints(Path(workdir) / "checkpoints", writable=False)
   state, _ = ckpts.load(step, abstract)
   return np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in jax.tree.leaves(state)])
@@ -237,30 +284,50 @@ def _checkpoint(workdir, step: int) -> np.ndarray:
 
 def _mpirun(workdir, processes: int, **args) -> subprocess.Popen:
   env = environ(XLA_FLAGS="--xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
-  env = {k: v for k, v in env.items() if not k.startswith(("JAX_NUM", "JAX_PROCESS_ID",
-                                                           "JAX_COORD", "OMPI_"))}
-  cmd = ["mpirun", "--allow-run-as-root", "--oversubscribe", "-np", str(processes),
-         "-x", "XLA_FLAGS", "-x", "JAX_PLATFORMS", "-x", "PYTHONPATH", sys.executable, str(JOB),
-         f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
-  return subprocess.Popen(cmd, env=env, text=True, stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE)
+  env = {
+      k: v
+      for k, v in env.items()
+      if not k.startswith(("JAX_NUM", "JAX_PROCESS_ID", "JAX_COORD", "OMPI_"))
+  }
+  cmd = [
+      "mpirun",
+      "--allow-run-as-root",
+      "--oversubscribe",
+      "-np",
+      str(processes),
+      "-x",
+      "XLA_FLAGS",
+      "-x",
+      "JAX_PLATFORMS",
+      "-x",
+      "PYTHONPATH",
+      sys.executable,
+      str(JOB),
+      f"--workdir={workdir}",
+  ] + [f"--{k}={v}" for k, v in args.items()]
+  return subprocess.Popen(cmd, env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(shutil.which("mpirun") is None, reason="needs Open MPI's mpirun "
-                    "(make test-slow installs openmpi-bin)")
+@pytest.mark.skipif(
+    shutil.which("mpirun") is None,
+    reason="needs Open MPI's mpirun " "(make test-slow installs openmpi-bin)",
+)
 def test_mpirun_without_variables_gives_the_checkpoints_of_the_jax_variables_run(tmp_path):
   mpi = _finish([_mpirun(tmp_path / "mpi", 2, epochs=3)])[0]
   assert mpi[0] == 0, mpi[2][-2000:]
-  outs = sorted((json.loads(line) for line in mpi[1].splitlines() if line.startswith("{")),
-                key=lambda r: r["process"])
+  outs = sorted(
+      (json.loads(line) for line in mpi[1].splitlines() if line.startswith("{")),
+      key=lambda r: r["process"],
+  )
   ref = _results(_launch(tmp_path / "vars", 2, epochs=3))
   assert [r["devices"] for r in outs] == [2, 2] and [r["process"] for r in outs] == [0, 1]
   np.testing.assert_array_equal(outs[0]["params"], ref[0]["params"])
   assert outs[0]["loss"] == ref[0]["loss"]
   for step in (2, 3):  # every leaf: parameters, optimiser state, step
-    np.testing.assert_array_equal(_checkpoint(tmp_path / "mpi", step),
-                                  _checkpoint(tmp_path / "vars", step))
+    np.testing.assert_array_equal(
+        _checkpoint(tmp_path / "mpi", step), _checkpoint(tmp_path / "vars", step)
+    )
   assert sorted(p.name for p in (tmp_path / "mpi" / "checkpoints").iterdir()) == ["2", "3"]
 
 
@@ -297,8 +364,11 @@ def test_a_killed_peer_stops_the_other_within_the_bound(tmp_path, victim):
     return
   lines = _error_lines(err)  # process 1 died: the survivor's collective fails
   assert survivor.returncode == preemption.PEER_LOST_STATUS, err[-3000:]
-  assert len(lines) == 1 and lines[0].startswith("toy_job: error: ") and \
-      "another process of this 2-process run probably died" in lines[0], lines
+  assert (
+      len(lines) == 1
+      and lines[0].startswith("toy_job: error: ")
+      and "another process of this 2-process run probably died" in lines[0]
+  ), lines
   assert f"checkpoint is epoch {ckpts.latest_epoch} in" in lines[0]
 
 
@@ -318,8 +388,9 @@ def test_sigterm_to_every_process_saves_and_the_requeue_ends_bit_identical(tmp_p
   np.testing.assert_array_equal(resumed[1]["params"], reference["params"])
   ref_lines = (tmp_path / "ref" / "metrics.jsonl").read_text().splitlines()
   lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
-  assert [json.loads(line)["loss"] for line in lines] == \
-      [json.loads(line)["loss"] for line in ref_lines]
+  assert [json.loads(line)["loss"] for line in lines] == [
+      json.loads(line)["loss"] for line in ref_lines
+  ]
 
 
 @pytest.mark.slow

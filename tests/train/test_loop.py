@@ -22,9 +22,17 @@ JOB = REPO / "tests" / "train" / "toy_job.py"
 
 def _train(workdir, epochs, seed=0, m=20, batch_size=4, **kw):
   init_fn, step_fn = toy.make_task(**{k: kw.pop(k) for k in ("hidden", "nan_at") if k in kw})
-  return toy.train(workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(m),
-                    batch_size=batch_size, num_epochs=epochs, seed=seed,
-                    fingerprint=kw.pop("fingerprint", {"q": 60, "dataset": "toy"}), **kw)
+  return toy.train(
+      workdir=workdir,
+      init_fn=init_fn,
+      step_fn=step_fn,
+      data=toy.make_data(m),
+      batch_size=batch_size,
+      num_epochs=epochs,
+      seed=seed,
+      fingerprint=kw.pop("fingerprint", {"q": 60, "dataset": "toy"}),
+      **kw,
+  )
 
 
 def _epochs_logged(workdir):
@@ -33,8 +41,7 @@ def _epochs_logged(workdir):
 
 
 def _job(workdir, devices=1, **args):
-  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-                JAX_PLATFORMS="cpu")
+  env = environ(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
   cmd = [sys.executable, str(JOB), f"--workdir={workdir}"] + [f"--{k}={v}" for k, v in args.items()]
   return cmd, env
 
@@ -54,20 +61,28 @@ def test_padded_last_batch_matches_hand_computed_sgd(tmp_path):
   def step_fn(state, batch, key):
     err = batch["x"] @ state["w"] - batch["y"]
     loss_fn = lambda w: jnp.sum(batch["weight"] * (batch["x"] @ w - batch["y"]) ** 2) / jnp.sum(
-        batch["weight"])
+        batch["weight"]
+    )
     loss, grad = jax.value_and_grad(loss_fn)(state["w"])
     return {"w": state["w"] - lr * grad}, {"loss": loss, "max_err": jnp.max(jnp.abs(err))}
 
-  state = toy.train(workdir=tmp_path, init_fn=lambda key: {"w": jnp.asarray(w0, jnp.float32)},
-                     step_fn=step_fn, data={"x": x.astype(np.float32), "y": y.astype(np.float32)},
-                     batch_size=4, num_epochs=2, seed=seed, fingerprint={})
+  state = toy.train(
+      workdir=tmp_path,
+      init_fn=lambda key: {"w": jnp.asarray(w0, jnp.float32)},
+      step_fn=step_fn,
+      data={"x": x.astype(np.float32), "y": y.astype(np.float32)},
+      batch_size=4,
+      num_epochs=2,
+      seed=seed,
+      fingerprint={},
+  )
   w, losses = w0.copy(), []
   for epoch in range(2):  # the documented order; the last batch holds one real row
     order = np.random.default_rng([seed, epoch]).permutation(5)
     sq = []
     for rows in (order[:4], order[4:]):
       r = x[rows] @ w - y[rows]
-      sq.append(np.mean(r ** 2) * len(rows))
+      sq.append(np.mean(r**2) * len(rows))
       w = w - lr * 2 * x[rows].T @ r / len(rows)
     losses.append(sum(sq) / 5)  # epoch loss: mean over the 5 real examples
   np.testing.assert_allclose(np.asarray(state["w"]), w, rtol=1e-5)
@@ -111,9 +126,17 @@ def test_resumed_run_is_bit_identical_and_finished_run_does_not_train(tmp_path):
 
   def refuse(*_):
     raise AssertionError("a finished run must not step")
-  again = toy.train(workdir=tmp_path / "full", init_fn=toy.make_task()[0], step_fn=refuse,
-                     data=toy.make_data(20), batch_size=4, num_epochs=4, seed=0,
-                     fingerprint={"q": 60, "dataset": "toy"})
+
+  again = toy.train(
+      workdir=tmp_path / "full",
+      init_fn=toy.make_task()[0],
+      step_fn=refuse,
+      data=toy.make_data(20),
+      batch_size=4,
+      num_epochs=4,
+      seed=0,
+      fingerprint={"q": 60, "dataset": "toy"},
+  )
   np.testing.assert_array_equal(toy.flat_params(again), toy.flat_params(full))
 
 
@@ -169,15 +192,17 @@ def test_half_written_checkpoints_are_never_picked_up(tmp_path):
   state, _ = toy.restore(tmp_path, toy.make_task()[0])
   assert int(state["step"]) == 2 * 5
   resumed = _train(tmp_path, epochs=3)
-  np.testing.assert_array_equal(toy.flat_params(resumed),
-                                toy.flat_params(_train(tmp_path / "ref", epochs=3)))
+  np.testing.assert_array_equal(
+      toy.flat_params(resumed), toy.flat_params(_train(tmp_path / "ref", epochs=3))
+  )
   assert sorted(p.name for p in ckpts.iterdir()) == ["2", "3"]
 
 
 def test_bad_arguments_are_refused(tmp_path):
   init_fn, step_fn = toy.make_task()
-  kw = dict(workdir=tmp_path, init_fn=init_fn, step_fn=step_fn, num_epochs=1, seed=0,
-            fingerprint={})
+  kw = dict(
+      workdir=tmp_path, init_fn=init_fn, step_fn=step_fn, num_epochs=1, seed=0, fingerprint={}
+  )
   with pytest.raises(ValueError, match="common leading dimension"):
     toy.train(data={"x": np.zeros((4, 3)), "y": np.zeros((5, 1))}, batch_size=2, **kw)
   with pytest.raises(ValueError, match="'weight'"):
@@ -185,8 +210,11 @@ def test_bad_arguments_are_refused(tmp_path):
   with pytest.raises(ValueError, match="batch_size=0"):
     toy.train(data=toy.make_data(4), batch_size=0, **kw)
   with pytest.raises(ValueError, match="PRNG key"):
-    toy.train(data=toy.make_data(4), batch_size=2,
-              **{**kw, "init_fn": lambda key: {"key": key, **init_fn(key)}})
+    toy.train(
+        data=toy.make_data(4),
+        batch_size=2,
+        **{**kw, "init_fn": lambda key: {"key": key, **init_fn(key)}},
+    )
   with pytest.raises(ValueError, match="fingerprint must be JSON"):
     toy.train(data=toy.make_data(4), batch_size=2, **{**kw, "fingerprint": {"f": object}})
   with pytest.raises(ValueError, match="is not held"):  # the caller holds the workdir
@@ -202,8 +230,9 @@ def test_sigkill_at_random_moments_then_rerun_ends_bit_identical(tmp_path):
   rng = np.random.default_rng()
   for attempt in range(2):
     cmd, env = _job(tmp_path / "killed", **args)
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True)
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     assert proc.stdout.readline().startswith("epoch"), "the job did not start training"
     delay = rng.uniform(0.0, 0.6)
     try:

@@ -34,8 +34,16 @@ def _task(armed: dict):
 
 def _train(workdir, armed):
   init_fn, step_fn = _task(armed)
-  return toy.train(workdir=workdir, init_fn=init_fn, step_fn=step_fn, data=toy.make_data(M),
-                   batch_size=BATCH, num_epochs=EPOCHS, seed=3, fingerprint={"t": "p"})
+  return toy.train(
+      workdir=workdir,
+      init_fn=init_fn,
+      step_fn=step_fn,
+      data=toy.make_data(M),
+      batch_size=BATCH,
+      num_epochs=EPOCHS,
+      seed=3,
+      fingerprint={"t": "p"},
+  )
 
 
 def _losses(workdir):
@@ -49,10 +57,13 @@ def reference(tmp_path_factory):
   return toy.flat_params(_train(workdir, {})), _losses(workdir)
 
 
-@pytest.mark.parametrize("number, status", [
-    (signal.SIGTERM, 143), pytest.param(signal.SIGINT, 130, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "number, status",
+    [(signal.SIGTERM, 143), pytest.param(signal.SIGINT, 130, marks=pytest.mark.slow)],
+)
 def test_signal_mid_epoch_saves_the_next_step_and_resumes_bit_identical(
-    tmp_path, reference, number, status):
+    tmp_path, reference, number, status
+):
   with pytest.raises(preemption.Stopped) as stop:
     _train(tmp_path, {"at": 7, "signal": number})
   assert stop.value.code == status and "saved global step" in stop.value.message
@@ -77,8 +88,7 @@ def test_sigint_during_a_checkpoint_save_stops_after_it(tmp_path, reference, mon
   monkeypatch.setattr(checkpointing.Checkpoints, "save", interrupted_save)
   with pytest.raises(preemption.Stopped) as stop:
     _train(tmp_path, {})
-  assert stop.value.code == 130 and "the last checkpoint holds global step 5" in \
-      stop.value.message
+  assert stop.value.code == 130 and "the last checkpoint holds global step 5" in stop.value.message
   assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["1"]
   assert not (tmp_path / "preempted").exists()
   monkeypatch.setattr(checkpointing.Checkpoints, "save", save)

@@ -34,8 +34,10 @@ def test_pad_batch_without_padding_and_with_fewer_rows_than_padding():
   assert weight.sum() == 2
 
 
-@pytest.mark.parametrize("batch,multiple", [({"a": np.zeros(3), "b": np.zeros(2)}, 2),
-                                            ({"a": np.zeros(0)}, 2), ({"a": np.zeros(3)}, 0)])
+@pytest.mark.parametrize(
+    "batch,multiple",
+    [({"a": np.zeros(3), "b": np.zeros(2)}, 2), ({"a": np.zeros(0)}, 2), ({"a": np.zeros(3)}, 0)],
+)
 def test_pad_batch_rejects_bad_input(batch, multiple):
   with pytest.raises(ValueError, match="pad_batch"):
     sharding.pad_batch(batch, multiple)
@@ -74,17 +76,19 @@ def test_two_devices_split_the_batch_and_refuse_odd_sizes():
       print("OK")
   """)
   env = environ(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
-  out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True,
-                       timeout=120, cwd=REPO)
+  out = subprocess.run(
+      [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120, cwd=REPO
+  )
   assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
 
 
 def _fake_processes(monkeypatch, fingerprints):
   """Makes `check_same_run` see len(fingerprints) processes, this one being process 0."""
-  from jax.experimental import multihost_utils
   import json
-  payloads = [np.frombuffer(json.dumps(f, sort_keys=True).encode(), np.uint8)
-              for f in fingerprints]
+
+  from jax.experimental import multihost_utils
+
+  payloads = [np.frombuffer(json.dumps(f, sort_keys=True).encode(), np.uint8) for f in fingerprints]
 
   def allgather(x):
     if np.ndim(x) == 0:
@@ -109,5 +113,7 @@ def test_another_run_in_one_process_is_refused_naming_process_and_keys(monkeypat
     sharding.check_same_run(run, "run (workdir w)")
   assert str(e.value) == (
       "process 2 of 3 was started with another run (workdir w) than process 0; differing "
-      "keys: fingerprint.model.channels: process 2 [8, 32], process 0 [8, 16]; loop.extra: process 2 "
-      "2, process 0 '<absent>'; loop.seed: process 2 1, process 0 0; nothing was written")
+      "keys: fingerprint.model.channels: process 2 [8, 32], process 0 [8, 16]; "
+      "loop.extra: process 2 2, process 0 '<absent>'; loop.seed: process 2 1, process 0 0; "
+      "nothing was written"
+  )

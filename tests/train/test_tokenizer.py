@@ -31,14 +31,23 @@ def test_smoke_run_writes_metrics_and_tokens(trained):
   workdir, config, splits = trained
   lines = [json.loads(x) for x in (workdir / "metrics.jsonl").read_text().splitlines()]
   assert [x["epoch"] for x in lines] == [1, 2]
-  for key in ("reconstruction", "codebook", "commitment", "classification", "accuracy",
-              "entries_in_use", "perplexity", "train_accuracy"):
+  for key in (
+      "reconstruction",
+      "codebook",
+      "commitment",
+      "classification",
+      "accuracy",
+      "entries_in_use",
+      "perplexity",
+      "train_accuracy",
+  ):
     assert np.isfinite(lines[-1][key]), key
   train_tokens, meta = tokens_lib.load_tokens(tokens_lib.tokens_path(workdir, "train"))
   q = train_tokens.q
   assert lines[-1]["entries_in_use"] == len(np.unique(q))
-  np.testing.assert_allclose(lines[-1]["perplexity"],
-                             np.exp(scipy.stats.entropy(np.bincount(q))), rtol=1e-4)
+  np.testing.assert_allclose(
+      lines[-1]["perplexity"], np.exp(scipy.stats.entropy(np.bincount(q))), rtol=1e-4
+  )
   assert meta["split"] == "train" and meta["codebook_size"] == config.model.quantizer.codebook_size
   assert train_tokens.z_hat.shape == (24, config.model.encoder.latent_dim)
   assert np.all(train_tokens.delta >= 0)

@@ -80,8 +80,9 @@ def test_stopped_run_resumes_bit_identically(dirs, trained):
     shutil.rmtree(workdir / "checkpoints" / str(epoch))
   _train(_config(dirs), workdir)
   jax.tree.map(np.testing.assert_array_equal, _params(workdir), _params(trained))
-  assert _curve(workdir) == [{**r, "seconds": s["seconds"]}
-                             for r, s in zip(_curve(trained), _curve(workdir))]
+  assert _curve(workdir) == [
+      {**r, "seconds": s["seconds"]} for r, s in zip(_curve(trained), _curve(workdir))
+  ]
 
 
 def test_the_seed_fixes_the_result(dirs, trained):
@@ -90,8 +91,9 @@ def test_the_seed_fixes_the_result(dirs, trained):
   other = _config(dirs)
   other.seed = 1
   _train(other, dirs / "seed1")
-  differs = jax.tree.map(lambda a, b: bool(np.any(a != b)), _params(trained),
-                         _params(dirs / "seed1"))
+  differs = jax.tree.map(
+      lambda a, b: bool(np.any(a != b)), _params(trained), _params(dirs / "seed1")
+  )
   assert all(jax.tree.leaves(differs))
 
 
@@ -107,8 +109,11 @@ def test_another_setting_in_the_same_workdir_is_refused(dirs):
 
 
 def test_bad_settings_are_refused_naming_the_field(dirs):
-  for field, value in (("select_metric", "accuracy"), ("end_lr_fraction", 1.5),
-                       ("warmup_steps", -1)):
+  for field, value in (
+      ("select_metric", "accuracy"),
+      ("end_lr_fraction", 1.5),
+      ("warmup_steps", -1),
+  ):
     with pytest.raises(ConfigFieldError, match=f"train.{field}"):
       BaselineRunConfig.from_config(_config(dirs, **{field: value}))
   config = _config(dirs)

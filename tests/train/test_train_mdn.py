@@ -95,16 +95,18 @@ def test_stopped_run_resumes_bit_identically(dirs, trained):
     shutil.rmtree(workdir / "checkpoints" / str(epoch))
   _train(_config(dirs), workdir)
   jax.tree.map(np.testing.assert_array_equal, _params(workdir), _params(trained))
-  assert _curve(workdir) == [{**r, "seconds": s["seconds"]}
-                             for r, s in zip(_curve(trained), _curve(workdir))]
+  assert _curve(workdir) == [
+      {**r, "seconds": s["seconds"]} for r, s in zip(_curve(trained), _curve(workdir))
+  ]
 
 
 def test_another_seed_gives_other_parameters(dirs, trained):
   other = _config(dirs, num_epochs=2)
   other.seed = 1
   _train(other, dirs / "seed1")
-  differs = jax.tree.map(lambda a, b: bool(np.any(a != b)), _params(trained),
-                         _params(dirs / "seed1"))
+  differs = jax.tree.map(
+      lambda a, b: bool(np.any(a != b)), _params(trained), _params(dirs / "seed1")
+  )
   assert all(jax.tree.leaves(differs))
 
 
@@ -114,8 +116,11 @@ def test_a_multiple_choice_loader_refuses_the_run(trained):
 
 
 def test_bad_settings_are_refused_naming_the_field(dirs):
-  for section, field, value in (("loss", "warmup_epochs", -1), ("model", "std_floor_m", 0.0),
-                                ("train", "select_metric", "nll_5s")):
+  for section, field, value in (
+      ("loss", "warmup_epochs", -1),
+      ("model", "std_floor_m", 0.0),
+      ("train", "select_metric", "nll_5s"),
+  ):
     config = _config(dirs)
     config[section][field] = value
     with pytest.raises(ConfigFieldError, match=f"{section}.{field}"):

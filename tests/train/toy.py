@@ -55,14 +55,16 @@ def make_task(hidden: int = 8, lr: float = 1e-2, nan_at: int | None = None):
 
 def flat_params(state) -> np.ndarray:
   """All parameters of a toy state as one float64 vector (host)."""
-  return np.concatenate([np.ravel(np.asarray(x, np.float64))
-                         for x in jax.tree.leaves(state["params"])])
+  return np.concatenate(
+      [np.ravel(np.asarray(x, np.float64)) for x in jax.tree.leaves(state["params"])]
+  )
 
 
 def train(**kwargs):
   """`loop.train(**kwargs)` inside the workdir's lock, as the trainers call it."""
   from cvmdx_jax.storage import locking
   from cvmdx_jax.train import loop
+
   with locking.hold(kwargs["workdir"]):
     return loop.train(**kwargs)
 
@@ -72,14 +74,22 @@ def restore(workdir, init_fn, fingerprint=None):
   `init_fn`'s structure (replicated); CheckpointMismatchError when `fingerprint` is given
   and differs from the saved one."""
   from pathlib import Path
+
   from cvmdx_jax import sharding
   from cvmdx_jax.storage import checkpointing, identity
+
   rep = sharding.replicated(sharding.data_mesh())
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
-                          jax.eval_shape(init_fn, jax.random.key(0)))
+  abstract = jax.tree.map(
+      lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep),
+      jax.eval_shape(init_fn, jax.random.key(0)),
+  )
   root = Path(workdir) / "checkpoints"
   state, saved = checkpointing.load_latest(root, abstract)
   if fingerprint is not None:
-    identity.check(saved["fingerprint"], fingerprint, f"checkpoint {root}",
-                   checkpointing.CheckpointMismatchError)
+    identity.check(
+        saved["fingerprint"],
+        fingerprint,
+        f"checkpoint {root}",
+        checkpointing.CheckpointMismatchError,
+    )
   return state, saved["fingerprint"]

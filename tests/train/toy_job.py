@@ -33,22 +33,32 @@ def task(name: str, m: int):
     from configs import diffusion as diffusion_config
     from cvmdx_jax.config.runs import DiffusionRunConfig
     from cvmdx_jax.train import diffusion
+
     config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(4)
     _, init_fn, step_fn = diffusion.init_and_step(config, total_steps=100)
-    data = {"x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
-            "q": rng.integers(0, 4, m).astype(np.int32)}
+    data = {
+        "x0": rng.uniform(-1, 1, (m, 125, 2)).astype(np.float32),
+        "q": rng.integers(0, 4, m).astype(np.int32),
+    }
     return init_fn, step_fn, data
   from configs import tokenizer as tokenizer_config
-  from cvmdx_jax.models import tokenizer as tokenizer_lib
   from cvmdx_jax.config.runs import TokenizerRunConfig
+  from cvmdx_jax.models import tokenizer as tokenizer_lib
   from cvmdx_jax.train import tokenizer
+
   run = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny"))
   model_cfg, tx = run.model, tokenizer.optimizer(run.train)
   graphdef = tokenizer_lib.make_graphdef(model_cfg)
-  data = {"xi": rng.normal(0, [20, 2, 30, 0.3], (m, 9, 75, 4)).astype(np.float32),
-          "mask": rng.uniform(size=(m, 9, 75)) < 0.8, "label": rng.integers(0, 3, m)}
-  return (tokenizer.make_init_fn(model_cfg, tx), tokenizer.make_step_fn(graphdef, model_cfg, tx),
-          data)
+  data = {
+      "xi": rng.normal(0, [20, 2, 30, 0.3], (m, 9, 75, 4)).astype(np.float32),
+      "mask": rng.uniform(size=(m, 9, 75)) < 0.8,
+      "label": rng.integers(0, 3, m),
+  }
+  return (
+      tokenizer.make_init_fn(model_cfg, tx),
+      tokenizer.make_step_fn(graphdef, model_cfg, tx),
+      data,
+  )
 
 
 def main() -> int:
@@ -70,10 +80,17 @@ def main() -> int:
     return {}
 
   try:
-    state = toy.train(workdir=a.workdir, init_fn=init_fn, step_fn=step_fn,
-                       data=data, batch_size=a.batch_size,
-                       num_epochs=a.epochs, seed=a.seed, fingerprint={"task": "toy"},
-                       epoch_end_fn=epoch_end)
+    state = toy.train(
+        workdir=a.workdir,
+        init_fn=init_fn,
+        step_fn=step_fn,
+        data=data,
+        batch_size=a.batch_size,
+        num_epochs=a.epochs,
+        seed=a.seed,
+        fingerprint={"task": "toy"},
+        epoch_end_fn=epoch_end,
+    )
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
@@ -84,8 +101,17 @@ def main() -> int:
   if sharding.is_primary():
     with open(f"{a.workdir}/metrics.jsonl") as f:
       loss = json.loads(f.read().splitlines()[-1])["loss"]
-  print(json.dumps({"devices": jax.device_count(), "process": jax.process_index(),
-                    "params": toy.flat_params(state).tolist(), "loss": loss}), flush=True)
+  print(
+      json.dumps(
+          {
+              "devices": jax.device_count(),
+              "process": jax.process_index(),
+              "params": toy.flat_params(state).tolist(),
+              "loss": loss,
+          }
+      ),
+      flush=True,
+  )
   return 0
 
 
