@@ -53,8 +53,15 @@ from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.data.highd_csv import read_table
 from cvmdx_jax.data.highd_format import (  # the format's names, read here and by users
+    ABSURD,
+    COLUMNS,
     NEIGHBOUR_COLUMNS,
     POSITION,
+    RANGES,
+    READ_COLUMNS,
+    RECORDING_META_COLUMNS,
+    TRACKS_COLUMNS,
+    TRACKS_META_COLUMNS,
 )
 
 MAX_DIRECTION_SLACK = 1.0  # m/s of xVelocity against the driving direction
