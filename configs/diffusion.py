@@ -56,7 +56,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # (a_x, yaw rate) decay time constants [s] of the extrapolated current controls of the
   # residual target: the current acceleration persists for seconds, the yaw rate (from
   # 0.01 m/s velocity steps) for a few steps; tau_a chosen on val from 2 / 3 / 5 s with the
-  # demo model, tau_r on train (BUILD_NOTES.md, "Residual base")
+  # demo model, tau_r on train (docs/log, "Residual base")
   config.diffusion.residual_decay_s = (3.0, 0.1)
   # loss weight per maneuver class (keep lane, lane change right, lane change left) of the
   # training scenarios; the weighted loss fits the denoiser to the class mixture

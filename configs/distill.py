@@ -29,7 +29,7 @@ from configs import common
 # The default pipeline's students (`make demo`, experiments/run_demo.py --distill_steps): a
 # progressive student for 2 steps taught by the guided denoiser's 10-step DDIM in one stage
 # (`:demo`'s teacher_substeps; later students halve their teacher's steps) (the sampler
-# chosen on val: BUILD_NOTES.md, "Distilled sampler"; the one stage: "One distillation
+# chosen on val: docs/log, "Distilled sampler"; the one stage: "One distillation
 # stage"); experiments/benchmark.py times the last one.
 STUDENTS = (2,)
 
@@ -73,7 +73,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # mean ADE 0.729, minFDE_K 1.250, Brier-minFDE 1.599 against DDIM-10's 0.732 / 1.255 /
     # 1.591 (k = 2 and 4 epochs, the demo until 2026-12-02: 0.734 / 1.281 / 1.668); 3
     # epochs match 4 (0.727 / 1.252 / 1.603) at ~1.3x the epoch time of k = 2
-    # (BUILD_NOTES.md, "A 10-step teacher for the 2-step student")
+    # (docs/log, "A 10-step teacher for the 2-step student")
     config.train.batch_size = 128
     config.train.num_epochs = 3
     config.train.learning_rate = 3e-4

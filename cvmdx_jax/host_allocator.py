@@ -3,7 +3,7 @@
 XLA:CPU allocates each execution's large buffers anew. With glibc's defaults every buffer
 above 32 MB is a fresh `mmap` that is page-faulted in on first touch and unmapped when
 freed, so each training step pays for ~0.9 M page faults (reference-size U-Net, batch 256:
-~2.4 s of system time per step on 2 cores; BUILD_NOTES.md, "Host allocator"). An allocator
+~2.4 s of system time per step on 2 cores; docs/log, "Host allocator"). An allocator
 that keeps freed pages mapped removes that. The training entry points
 (`cli.run(main, allocator=True)`) re-execute themselves once, before any work, with
 - jemalloc preloaded without page decay (`MALLOC_CONF=dirty_decay_ms:-1,muzzy_decay_ms:-1`)

@@ -9,7 +9,7 @@ each (forward: y = x a + b; backward: dx = A dy + B x + C). With autodiff throug
 made them index-bound. `group_norm_silu` also takes the SiLU (and a FiLM modulation
 before it) into the same loops: one pass forward, the sigmoid recomputed backward instead
 of stored. With both and the phase-split upsampling (`layers.Upsample`) the reference-size
-training step went from 3.75 to 3.12 s on 2 CPU cores (BUILD_NOTES.md, "Training step:
+training step went from 3.75 to 3.12 s on 2 CPU cores (docs/log, "Training step:
 GroupNorm and upsampling").
 
 The (B, G) -> (B, C) expansion is a product with a 0/1 matrix: XLA:CPU keeps a dot out of

@@ -17,7 +17,7 @@ Per feature, xi_n = (xi - offset) / scale, and 0 wherever the vehicle is absent:
 The scales decide what the tokens capture: the reconstruction error is their only
 unsupervised signal, and with coarse velocity units (10 m/s, 0.5 m/s) it was dominated by
 the neighbours' positions, so tokens barely told an accelerating or drifting ego from a
-steady one (measured in BUILD_NOTES.md, "Tokens that predict the future").
+steady one (measured in docs/log, "Tokens that predict the future").
 
 The mask itself is fed to the encoder as a fifth channel (`encoder_input`), so an absent
 vehicle is not mistaken for one at (0, 0) driving at 30 m/s.

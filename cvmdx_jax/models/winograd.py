@@ -7,7 +7,7 @@ convolution) and transformed back (y = A^T (U V)). The same convolution up to fl
 rounding (~5e-6 relative); its gradients come from autodiff through the same GEMMs, so the
 forward and both backward convolutions do half the multiplies. On XLA:CPU 0.10 (2-core
 AVX-512, batch 256) forward + backward is 1.3-1.7x faster than `lax.conv_general_dilated`
-where both channel counts are >= 128, and not faster below (BUILD_NOTES.md, "Winograd").
+where both channel counts are >= 128, and not faster below (docs/log, "Winograd").
 
 `conv3` takes it as the performance option `winograd` says (`models.performance`):
 "auto" (default) on the CPU backend only, chosen per platform when the function is

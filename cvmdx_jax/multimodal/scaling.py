@@ -7,7 +7,7 @@ Two variants:
   * 'minmax' (the paper's literal recipe): per scenario, each coordinate is
     mapped to [0, 1] using its minimum and maximum over all samples and steps.
     A single tight blob is stretched to fill the unit square, which is why this
-    variant over-selects modes with small covariance floors (BUILD_NOTES.md, "Core":
+    variant over-selects modes with small covariance floors (docs/log, "Core":
     63 % of 1,000 synthetic sets at reg_covar 1e-6).
 """
 

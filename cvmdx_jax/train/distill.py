@@ -11,7 +11,7 @@ One run is one stage (`diffusion.distillation`), chosen by the teacher:
 - with `guided_progressive`, a guided denoiser teaches a progressive student directly
   (stage "guided_progressive"): the targets are k DDIM steps of the guided pair on the
   grid of k `steps`, the student initialised as for the guidance stage. One run instead
-  of two, each step 2 k teacher evaluations (BUILD_NOTES.md, "One distillation stage").
+  of two, each step 2 k teacher evaluations (docs/log, "One distillation stage").
 
 x_t is the training data noised by the forward process (t uniform over the T steps for
 the guidance stage, over the student's grid for the progressive ones), w = w(t, delta)

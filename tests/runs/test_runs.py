@@ -85,7 +85,7 @@ def test_run_configs_become_the_typed_configs():
   assert demo.model.cond_hidden == (256, 256)  # chosen on val
   assert demo.train.batch_size == 128  # chosen on val
   assert not demo.diffusion.weighted_classes
-  # chosen on val (BUILD_NOTES, "Hypotheses for coverage"); the paper keeps BIC over 9
+  # chosen on val (docs/log, "Hypotheses for coverage"); the paper keeps BIC over 9
   assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
   assert demo.sampling.hypotheses.endpoint_weight == 0.5
   for preset in ("paper", "reference"):
