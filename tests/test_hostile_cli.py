@@ -63,14 +63,15 @@ def test_sigterm_is_one_line_143_and_leaves_no_temporary_directory_or_child(tmp_
   proc = _start([sys.executable, str(script)], tmp_path, TMPDIR=str(temp))
   try:
     assert proc.stdout.readline() == "ready\n"
-    for _ in range(100):  # the child has started
-      if _procs_with(str(temp)):
-        break
+    deadline = time.monotonic() + 60  # the child has started (slow on a loaded machine)
+    while not _procs_with(str(temp)) and time.monotonic() < deadline:
       time.sleep(0.05)
+    assert _procs_with(str(temp)), "the sleeper's child did not start"
     proc.send_signal(signal.SIGTERM)
     _, stderr = proc.communicate(timeout=60)
   finally:
     proc.kill()
+    proc.communicate()  # closes the pipes
   assert proc.returncode == 143, stderr
   assert stderr == "sleeper: error: terminated; rerun to resume\n"
   assert list(temp.iterdir()) == []
