@@ -19,39 +19,21 @@ the rows of every global batch that its devices hold, orbax writes one checkpoin
 and only process 0 writes `metrics.jsonl`; the result matches a single-process run.
 """
 
-import json
 import os
-import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
-from tqdm.auto import tqdm
 
 from cvmdx_jax import sharding
 from cvmdx_jax.runs import layout
-from cvmdx_jax.storage import atomic, checkpointing, identity, locking
-from cvmdx_jax.storage.checkpointing import CheckpointMismatchError
+from cvmdx_jax.storage import checkpointing, identity, locking
 from cvmdx_jax.train import preemption
+from cvmdx_jax.train.epochs import EpochRunner, State, StepFn, TrainingError, init_key
 
-State = Any
-Batch = dict[str, jax.Array]
-StepFn = Callable[[State, Batch, jax.Array], tuple[State, dict[str, jax.Array]]]
-
-# init_fn gets this fold of the seed's key; global steps (fold_in data) never reach it.
-_INIT_FOLD = 2**32 - 1
-_FINITE_METRICS = ("loss", "grad_norm")
-
-
-class TrainingError(RuntimeError):
-  """Training produced a non-finite loss or gradient norm."""
-
-
-def init_key(seed: int) -> jax.Array:
-  """The key `train` passes to `init_fn` for `seed`."""
-  return jax.random.fold_in(jax.random.key(seed), _INIT_FOLD)
+__all__ = ["State", "StepFn", "TrainingError", "init_key", "train"]
 
 
 def _abstract_state(init_fn: Callable[[jax.Array], State], mesh) -> State:
@@ -83,66 +65,37 @@ def _check_data(data: Mapping[str, Any], batch_size: int) -> int:
   return m
 
 
-def _trim_metrics(path: Path, epochs_done: int) -> None:
-  """Keeps only complete lines of epochs <= epochs_done (a resumed run rewrites the rest)."""
-  if not path.exists():
-    return
-  kept = []
-  for line in path.read_text().splitlines():
-    try:
-      record = json.loads(line)
-      if record["epoch"] <= epochs_done:
-        kept.append(record)
-    except (ValueError, KeyError, TypeError):
-      continue
-  atomic.write_jsonl(path, kept)
+def _check_arguments(workdir, data, batch_size: int, checkpoint_every: int, keep: int) -> int:
+  """M, the number of examples, once `train`'s arguments are checked (ValueError)."""
+  if not locking.is_held(workdir):
+    raise ValueError(
+        f"train: workdir {workdir} is not held; call train inside " "storage.locking.hold(workdir)"
+    )
+  m = _check_data(data, batch_size)
+  if checkpoint_every < 1 or keep < 1:
+    raise ValueError(f"train: checkpoint_every={checkpoint_every} and keep={keep} must be >= 1")
+  return m
 
 
-def _check_finite(metrics: list[dict[str, np.ndarray]], epoch: int, first_step: int) -> None:
-  """TrainingError at the first non-finite loss or grad_norm of an epoch's step metrics."""
-  for i, m in enumerate(metrics):
-    for name in _FINITE_METRICS:
-      if name in m and not np.isfinite(m[name]):
-        raise TrainingError(
-            f"non-finite {name}={float(m[name])} at global step "
-            f"{first_step + i} (epoch {epoch}); last good checkpoint kept"
-        )
-
-
-def _epoch_summary(
-    metrics: list[dict[str, np.ndarray]], weights: np.ndarray, epoch: int, first_step: int
-) -> dict[str, float]:
-  """Weighted means of per-step metrics; TrainingError at the first non-finite loss/grad."""
-  _check_finite(metrics, epoch, first_step)
-  n = weights.sum(axis=1)
-  return {
-      k: float(np.sum(n * np.array([m[k] for m in metrics], np.float64)) / n.sum())
-      for k in metrics[0]
+def _run_meta(workdir, data, m: int, batch_size: int, seed: int, fingerprint, schedule) -> dict:
+  """The run's identity stored with each checkpoint; under `jax.distributed` checked against
+  process 0's (with the data's content id, the workdir and the `schedule` (num_epochs,
+  checkpoint_every, keep))."""
+  run_meta = {
+      "fingerprint": identity.to_json(fingerprint),
+      "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m},
   }
-
-
-def _to_json_value(value: Any) -> Any:
-  return np.asarray(jax.device_get(value)).tolist()
-
-
-def _epoch_order(seed: int, epoch: int, m: int, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
-  """(example indices, weights), both (steps per epoch, batch_size), of 0-based `epoch`."""
-  order = np.random.default_rng([seed, epoch]).permutation(m)
-  order, weight = sharding.pad_batch(order, batch_size)
-  return order.reshape(-1, batch_size), weight.reshape(-1, batch_size)
-
-
-def _resume_point(
-    ckpts, workdir: Path, abstract: State, run_meta: dict, steps_per_epoch: int
-) -> tuple[State | None, int, list[dict]]:
-  """(state or None, global step, the step metrics of its unfinished epoch) to resume from:
-  the latest epoch checkpoint, or a later preemption checkpoint."""
-  done, state = ckpts.latest_epoch or 0, None
-  if done:
-    state, saved = ckpts.load(done, abstract)
-    identity.check(saved, run_meta, f"checkpoint {ckpts.root / str(done)}", CheckpointMismatchError)
-  stopped = preemption.load_stopped(workdir, abstract, run_meta, done * steps_per_epoch)
-  return stopped or (state, done * steps_per_epoch, [])
+  if jax.process_count() > 1:  # every process must run the same job on the same data
+    sharding.check_same_run(
+        {
+            **run_meta,
+            "data": identity.content_id(data),
+            "workdir": str(Path(workdir).resolve()),
+            "schedule": list(schedule),
+        },
+        f"run (workdir {workdir})",
+    )
+  return run_meta
 
 
 def train(
@@ -199,42 +152,16 @@ def train(
     preemption.Stopped: SIGTERM or SIGINT arrived; the state at the next step boundary
       is saved (module docstring); exits with status 143 or 130.
   """
-  if not locking.is_held(workdir):
-    raise ValueError(
-        f"train: workdir {workdir} is not held; call train inside " "storage.locking.hold(workdir)"
-    )
-  m = _check_data(data, batch_size)
-  if checkpoint_every < 1 or keep < 1:
-    raise ValueError(f"train: checkpoint_every={checkpoint_every} and keep={keep} must be >= 1")
+  m = _check_arguments(workdir, data, batch_size, checkpoint_every, keep)
   mesh = sharding.data_mesh()
   sharding.check_divisible(batch_size, mesh)
   abstract = _abstract_state(init_fn, mesh)
-  run_meta = {
-      "fingerprint": identity.to_json(fingerprint),
-      "loop": {"seed": seed, "batch_size": batch_size, "num_examples": m},
-  }
-  if jax.process_count() > 1:  # every process must run the same job on the same data
-    sharding.check_same_run(
-        {
-            **run_meta,
-            "data": identity.content_id(data),
-            "workdir": str(Path(workdir).resolve()),
-            "schedule": [num_epochs, checkpoint_every, keep],
-        },
-        f"run (workdir {workdir})",
-    )
+  schedule = (num_epochs, checkpoint_every, keep)
+  run_meta = _run_meta(workdir, data, m, batch_size, seed, fingerprint, schedule)
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
-  run = _Run(
-      workdir,
-      init_fn,
-      step_fn,
-      {k: np.asarray(v) for k, v in data.items()},
-      batch_size,
-      seed,
-      run_meta,
-      mesh,
-  )
+  data = {k: np.asarray(v) for k, v in data.items()}
+  run = EpochRunner(workdir, init_fn, step_fn, data, batch_size, seed, run_meta, mesh)
   with (
       checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts,
       preemption.Signals() as signals,
@@ -251,123 +178,3 @@ def train(
   if signals.received is not None:  # arrived during the last save: stop as asked
     raise signals.stopped(f"the run finished ({num_epochs} epochs)")
   return sharding.local_copy(state)
-
-
-class _Run:
-  """The fixed parts of one `train` call and its two phases: `start` and `epochs`."""
-
-  def __init__(
-      self,
-      workdir: Path,
-      init_fn,
-      step_fn: StepFn,
-      data: dict[str, np.ndarray],
-      batch_size: int,
-      seed: int,
-      run_meta: dict,
-      mesh,
-  ):
-    self.workdir, self.init_fn, self.data, self.mesh = workdir, init_fn, data, mesh
-    self.batch_size, self.seed, self.run_meta = batch_size, seed, run_meta
-    self.m = next(iter(data.values())).shape[0]
-    self.steps_per_epoch = -(-self.m // batch_size)
-    root_key = jax.random.key(seed)
-
-    def keyed_step(state, batch, global_step):
-      return step_fn(state, batch, jax.random.fold_in(root_key, global_step))
-
-    self.step = jax.jit(keyed_step, donate_argnums=0)
-
-  def start(self, ckpts, abstract: State, on_start) -> tuple[State, int, list[dict]]:
-    """(state, global step, step metrics of the unfinished epoch) to go on from."""
-    state, start, metrics = _resume_point(
-        ckpts, self.workdir, abstract, self.run_meta, self.steps_per_epoch
-    )
-    if state is None:
-      state = jax.jit(self.init_fn, out_shardings=sharding.replicated(self.mesh))(
-          init_key(self.seed)
-      )
-    if on_start is not None:
-      on_start()
-    if sharding.is_primary():
-      _trim_metrics(self.workdir / layout.METRICS, start // self.steps_per_epoch)
-    return state, start, metrics
-
-  def epochs(
-      self,
-      state: State,
-      start: int,
-      metrics: list,
-      num_epochs: int,
-      ckpts,
-      signals: preemption.Signals,
-      checkpoint_every: int,
-      epoch_end_fn,
-      desc: str,
-  ) -> State:
-    """Runs the epochs from global step `start` to `num_epochs`; `metrics` holds the step
-    metrics of `start`'s epoch before `start`."""
-    spe, primary = self.steps_per_epoch, sharding.is_primary()
-    saved = (ckpts.latest_epoch or 0) * spe  # the global step of the newest checkpoint
-    with tqdm(
-        total=num_epochs * spe,
-        initial=min(start, num_epochs * spe),
-        desc=desc,
-        unit="step",
-        dynamic_ncols=True,
-        disable=not primary,
-    ) as bar:
-      for epoch in range(start // spe, num_epochs):
-        begin, first_step = time.perf_counter(), epoch * spe
-        order, weight = _epoch_order(self.seed, epoch, self.m, self.batch_size)
-        for i in range(max(start - first_step, 0), spe):
-          if signals.stop_at(first_step + i):
-            raise self._stop(signals, first_step + i, saved, state, metrics)
-          batch = {k: v[order[i]] for k, v in self.data.items()}
-          batch["weight"] = weight[i]
-          state, step_metrics = self.step(
-              state, sharding.shard_batch(batch, self.mesh), first_step + i
-          )
-          metrics.append(step_metrics)
-          bar.update()
-        summary = _epoch_summary(jax.device_get(metrics), weight, epoch + 1, first_step)
-        metrics = []
-        if epoch_end_fn is not None:
-          summary.update(
-              {
-                  k: _to_json_value(v)
-                  for k, v in epoch_end_fn(sharding.local_copy(state), epoch + 1).items()
-              }
-          )
-        bar.set_postfix(loss=f"{summary['loss']:.4g}", epoch=epoch + 1)
-        line = {
-            "epoch": epoch + 1,
-            "step": first_step + spe,
-            "seconds": round(time.perf_counter() - begin, 4),
-            **summary,
-        }
-        if primary:
-          atomic.append_jsonl(self.workdir / layout.METRICS, line)
-        if (epoch + 1) % checkpoint_every == 0 or epoch + 1 == num_epochs:
-          ckpts.save(epoch + 1, state, self.run_meta)
-          saved = first_step + spe
-          preemption.drop_stopped(self.workdir)
-    return state
-
-  def _stop(
-      self, signals: preemption.Signals, step: int, saved: int, state: State, metrics: list
-  ) -> preemption.Stopped:
-    """Saves the state before global `step` (unless a checkpoint holds it already) and
-    returns the `Stopped` to raise."""
-    spe = self.steps_per_epoch
-    if step != saved:
-      host_metrics = jax.device_get(metrics)
-      _check_finite(host_metrics, step // spe + 1, step // spe * spe)
-      preemption.save_stopped(self.workdir, step, state, self.run_meta, host_metrics)
-      where = (
-          f"saved global step {step} (epoch {step // spe + 1}, step {step % spe + 1}) "
-          f"in {self.workdir / preemption.STOPPED}"
-      )
-    else:
-      where = f"the last checkpoint holds global step {step}"
-    return signals.stopped(where)
