@@ -4,7 +4,8 @@
   learned_baseline  the multiple-choice MLP's tokeniser check and report rows
   mdn_rows   the mixture density network's report rows
   probabilistic  (weighted) energy score, hypothesis-mixture NLL at 5 s, calibration of p(c)
-  scoring    per-scenario errors per method -> {method: {subset: {metric}}}, tables
+  scoring    per-scenario errors per method -> {method: {subset: {metric}}}
+  score_tables  the report's markdown tables of those
   token_kl   KL per codebook entry between data and model 5 s positions (paper Fig. 3)
   comparisons  paired differences of a report with vehicle-bootstrap intervals
   figures    paper Fig. 1 (predictions), Fig. 3 (KL vs codebook usage), reliability PNGs

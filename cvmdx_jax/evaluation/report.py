@@ -36,6 +36,7 @@ from cvmdx_jax.evaluation import (
     learned_baseline,
     mdn_rows,
     report_models,
+    score_tables,
     scoring,
 )
 from cvmdx_jax.evaluation import report_files as files
@@ -161,7 +162,7 @@ def evaluate(
       },
       "comparisons": differences,
   }
-  tables = scoring.markdown_tables(results) + "\n" + comparisons.markdown(differences)
+  tables = score_tables.markdown_tables(results) + "\n" + comparisons.markdown(differences)
   return files.Report(
       results, meta, tables, files.prediction_arrays(scenarios, out, errors), pngs, stale
   )

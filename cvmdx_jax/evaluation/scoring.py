@@ -1,6 +1,6 @@
 """Evaluation like the paper: cVMDx (mean, most likely p(c), best of K) against
 constant velocity, constant acceleration + yaw rate and a single DDPM sample (cVMD),
-overall and per maneuver class, as nested dicts and markdown tables.
+overall and per maneuver class, as nested dicts (their markdown tables: `score_tables`).
 
 Metrics per method and subset: `ade`, `fde` (m), `final_lon`, `final_lat` (|dx|, |dy|
 at 5 s, m), `miss_rate` (final error > 2 m), `hit_rate` (final lateral error < 1.75 m),
@@ -32,26 +32,7 @@ from cvmdx_jax.evaluation import baselines, metrics, probabilistic
 
 METHODS = ("cvmdx_mean", "cvmdx_most_likely", "cvmdx_best_of_k", "cv", "ca", "ddpm_single")
 SUBSETS = ("all",) + constants.CLASS_NAMES
-METHOD_TITLES = {
-    "cvmdx_mean": "cVMDx mean of N",
-    "cvmdx_most_likely": "cVMDx most likely p(c)",
-    "cvmdx_best_of_k": "cVMDx best of K (minADE_K / minFDE_K)",
-    "cv": "Constant velocity",
-    "ca": "Constant acceleration + yaw rate",
-    "ddpm_single": "cVMD-style single DDPM sample",
-    # the learned baseline (`learned_baseline`), in reports given a --baseline_dir
-    "mlp_most_likely": "MLP, 3 heads (WTA): most likely",
-    "mlp_mean": "MLP, 3 heads (WTA): probability-weighted mean",
-    "mlp_best_of_k": "MLP, 3 heads (WTA): best of K",
-}
 TARGET_LANE_MIN_PROB = 0.2  # a hypothesis counts for target_lane_hit from this probability
-# Paper, Table II (highD): ADE / FDE@5s in metres.
-PAPER_HIGHD = {
-    "cvmdx_mean": (1.37, 3.84),
-    "cvmdx_most_likely": (1.43, 4.00),
-    "cvmdx_best_of_k": (1.33, 3.68),
-    "ddpm_single": (1.79, 3.76),
-}
 
 
 class NonFinitePredictionError(UserError):
@@ -251,75 +232,3 @@ def summarise(errors: dict, labels) -> dict:
           row[k] = float(v[sel].mean())
       out[method][subset] = {**row, "num_scenarios": int(sel.sum())}
   return out
-
-
-def markdown_tables(results: dict) -> str:
-  """Three markdown tables: overall (paper Table II layout plus the added metrics), per
-  class (Table I) and cVMDx's scenario uncertainty per subset."""
-  fmt = lambda x, spec="{:.2f}": "-" if x is None else "n/a" if x != x else spec.format(x)
-  lines = [
-      "| model | ADE [m] | FDE@5s [m] | final lon [m] | final lat [m] | miss rate (2 m) "
-      "| hit rate (1.75 m) | Brier-minFDE [m] | target lane, p >= 0.2 (lc) | scenarios "
-      "| paper highD ADE / FDE |",
-      "|---|---|---|---|---|---|---|---|---|---|---|",
-  ]
-  for method, by_subset in results.items():
-    r = by_subset["all"]
-    paper = PAPER_HIGHD.get(method)
-    cells = " | ".join(
-        fmt(r.get(k))
-        for k in (
-            "ade",
-            "fde",
-            "final_lon",
-            "final_lat",
-            "miss_rate",
-            "hit_rate",
-            "brier_min_fde",
-            "target_lane_hit",
-        )
-    )
-    lines.append(
-        f"| {METHOD_TITLES.get(method, method)} | {cells} | {r['num_scenarios']} | "
-        f"{f'{paper[0]:.2f} / {paper[1]:.2f}' if paper else '-'} |"
-    )
-  lines += [
-      "",
-      "| model | " + " | ".join(f"{s} ADE | {s} FDE" for s in constants.CLASS_NAMES) + " |",
-      "|---|" + "---|---|" * len(constants.CLASS_NAMES),
-  ]
-  for method, by_subset in results.items():
-    cells = " | ".join(
-        f"{fmt(by_subset[s]['ade'])} | {fmt(by_subset[s]['fde'])}" for s in constants.CLASS_NAMES
-    )
-    lines.append(f"| {METHOD_TITLES.get(method, method)} | {cells} |")
-  if "cvmdx_mean" in results:
-    lines += [
-        "",
-        "| cVMDx scenario uncertainty | scenarios | out of distribution "
-        "| Spearman rho(delta, mean-of-N ADE) | p-value |",
-        "|---|---|---|---|---|",
-    ]
-    for subset in SUBSETS:
-      r = results["cvmdx_mean"][subset]
-      lines.append(
-          f"| {subset} | {r['num_scenarios']} | "
-          f"{fmt(r.get('out_of_distribution'), '{:.1%}')} | "
-          f"{fmt(r.get('delta_ade_spearman'))} | "
-          f"{fmt(r.get('delta_ade_spearman_p'), '{:.2g}')} |"
-      )
-  if "cvmdx_best_of_k" in results:
-    lines += [
-        "",
-        "| cVMDx probabilistic quality | scenarios | energy score of N [m] "
-        "| NLL at 5 s [nats] | ECE of p(c), 10 bins | Brier-minFDE [m] |",
-        "|---|---|---|---|---|---|",
-    ]
-    for subset in SUBSETS:
-      r, m = results["cvmdx_best_of_k"][subset], results.get("cvmdx_mean", {}).get(subset, {})
-      lines.append(
-          f"| {subset} | {r['num_scenarios']} | {fmt(m.get('energy_score'))} | "
-          f"{fmt(r.get('nll_final'))} | {fmt(r.get('ece'), '{:.3f}')} | "
-          f"{fmt(r.get('brier_min_fde'))} |"
-      )
-  return "\n".join(lines) + "\n"

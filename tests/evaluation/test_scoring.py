@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.data.scenarios import Scenarios
-from cvmdx_jax.evaluation import learned_baseline, scoring
+from cvmdx_jax.evaluation import learned_baseline, score_tables, scoring
 from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal.hypotheses import Hypotheses
 
@@ -163,7 +163,7 @@ def test_markdown_tables_show_the_added_metrics():
       },
   }
   results = scoring.summarise(errors, labels)
-  text = scoring.markdown_tables(results)
+  text = score_tables.markdown_tables(results)
   assert "Brier-minFDE [m]" in text and "final lon [m]" in text and "target lane" in text
   mean_row = next(line for line in text.splitlines() if line.startswith("| cVMDx mean"))
   assert mean_row.split("|")[4].strip() == "1.00"  # final lon of a 1 m shift
@@ -225,6 +225,6 @@ def test_markdown_tables_show_the_probabilistic_scores():
   results = scoring.summarise(errors, labels)
   for subset, row in scoring.calibration(hyps, probs, gt, labels)[0].items():
     results["cvmdx_best_of_k"][subset].update(row)
-  text = scoring.markdown_tables(results)
+  text = score_tables.markdown_tables(results)
   row = next(line for line in text.splitlines() if line.startswith("| kl | 1 | 0.50"))
   assert [c.strip() for c in row.split("|")[4:7]] == ["1.00", "0.700", "1.49"]
