@@ -29,22 +29,22 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 import orbax.checkpoint.experimental.v1 as ocp
 
-from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import checksums, identity
+from cvmdx_jax.storage.checkpoint_checks import (
+    CheckpointMismatchError,
+    check_structure,
+    refuse_nan,
+)
+
+__all__ = ["CheckpointMismatchError", "Checkpoints", "check_structure", "load_latest"]
 
 # orbax writes this file into the temporary directory just before the final rename; a
 # step directory without it was not finished by orbax (or was tampered with).
 _COMMIT_MARKER = "commit_success.txt"
 _STATE = "state"  # the checkpointable (subdirectory) that holds the state pytree
 _TMP_MARK = ".orbax-checkpoint-tmp"  # in the name of every directory orbax has not finished
-
-
-class CheckpointMismatchError(UserError):
-  """A checkpoint is missing, unreadable, or does not belong to the requested run."""
 
 
 class _QuietOrbax(logging.Filter):
@@ -88,53 +88,6 @@ def _holding_orbax_logs():
     logging.getLogger("absl").handle(record)
 
 
-def _path_key(path: tuple[Any, ...]) -> str:
-  """A tree path as 'a/0/b', the same for a namedtuple field and orbax's dict key."""
-  parts = []
-  for p in path:
-    for attr in ("key", "idx", "name"):
-      if hasattr(p, attr):
-        parts.append(str(getattr(p, attr)))
-        break
-    else:
-      parts.append(str(p))
-  return "/".join(parts)
-
-
-def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
-  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-  return {_path_key(p): (tuple(x.shape), np.dtype(x.dtype).name) for p, x in leaves}
-
-
-def check_structure(
-    saved_meta: Any, abstract_state: Any, where: str, partial: bool = False
-) -> None:
-  """Raises CheckpointMismatchError when leaves, shapes or dtypes differ, naming the leaf.
-
-  With `partial`, leaves of the checkpoint that `abstract_state` lacks are allowed.
-  """
-  saved, want = _leaf_specs(saved_meta), _leaf_specs(abstract_state)
-  problems = []
-  for k in sorted(set(saved) | set(want)):
-    if k not in saved:
-      problems.append(f"leaf {k!r} expected {want[k][0]} but absent from the checkpoint")
-    elif k not in want:
-      if partial:
-        continue
-      problems.append(f"leaf {k!r} {saved[k][0]} in the checkpoint but not expected")
-    elif saved[k] != want[k]:
-      problems.append(
-          f"leaf {k!r}: checkpoint shape {saved[k][0]} {saved[k][1]}, "
-          f"expected shape {want[k][0]} {want[k][1]}"
-      )
-  if problems:
-    raise CheckpointMismatchError(
-        f"checkpoint {where} does not match the expected state (other model size?): "
-        + "; ".join(problems[:8])
-        + (f"; ... {len(problems) - 8} more" if len(problems) > 8 else "")
-    )
-
-
 def _remove_temporaries(root: Path) -> None:
   """Deletes orbax's unfinished directories directly under `root` (process 0 only)."""
   if jax.process_index() == 0 and root.is_dir():
@@ -152,33 +105,6 @@ def _join_orbax_threads(timeout_s: float = 60.0) -> None:
         thread.join(max(0.0, deadline - time.monotonic()))
       except Exception:  # pylint: disable=broad-except
         pass  # orbax's threads re-raise their error on join: the failed save's, passed on
-
-
-@jax.jit
-def _nan_leaves(leaves: list) -> jax.Array:
-  """(L,) bool: whether each leaf holds a NaN (non-float leaves: False)."""
-  return jnp.stack(
-      [
-          jnp.isnan(x).any() if jnp.issubdtype(x.dtype, jnp.inexact) else jnp.zeros((), bool)
-          for x in leaves
-      ]
-  )
-
-
-def _refuse_nan(state: Any, where: Path) -> None:
-  """CheckpointMismatchError naming the first leaf of `state` that holds a NaN (weights of a
-  diverged run: never loaded, neither to resume nor as a teacher). Infinities pass (a
-  best-so-far score starts at inf)."""
-  flat = jax.tree_util.tree_flatten_with_path(state)[0]
-  if not flat:
-    return
-  paths, leaves = zip(*flat)
-  bad = np.flatnonzero(np.asarray(jax.device_get(_nan_leaves(list(leaves)))))
-  if bad.size:
-    raise CheckpointMismatchError(
-        f"checkpoint {where} holds NaN in {_path_key(paths[bad[0]])!r} (a diverged run): "
-        "delete this step directory to fall back to an older one, or retrain"
-    )
 
 
 def _complete_steps(root: Path, *, with_manifest: bool = False) -> tuple[list[int], list[Path]]:
@@ -339,7 +265,7 @@ class Checkpoints:
     custom = meta.custom_metadata or {}
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
-    _refuse_nan(state, where)
+    refuse_nan(state, where)
     return state, custom["cvmdx"]
 
 
