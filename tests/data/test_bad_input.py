@@ -200,7 +200,7 @@ def test_recording_without_lane_change(tmp_path):
 @pytest.mark.parametrize("v0, message", [(-5.0, "'v0' is negative"), (np.nan, "'v0' holds NaN")])
 def test_negative_or_nonfinite_v0_refused(v0, message):
   from cvmdx_jax.data import scenarios as scenarios_lib
-  from cvmdx_jax.inference import predictor as predict
+  from cvmdx_jax.inference import predictor_inputs
 
   arrays = {
       name: np.zeros((3, *shape), dtype) for name, (shape, dtype) in scenarios_lib.FIELDS.items()
@@ -210,7 +210,7 @@ def test_negative_or_nonfinite_v0_refused(v0, message):
   with pytest.raises(ValueError, match=f"{message}.*scenario 2"):
     scen.validate()
   with pytest.raises(ValueError, match=f"{message}.*scenario 2"):
-    scen.validate(fields=predict.INPUT_FIELDS, dtypes=False)
+    scen.validate(fields=predictor_inputs.INPUT_FIELDS, dtypes=False)
 
 
 def test_empty_selection(highd_dir):

@@ -11,7 +11,8 @@ import pytest
 from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.data import dataset
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.inference.predictor import Predictor, check_student_steps
+from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.inference.predictor_inputs import check_student_steps
 
 
 @pytest.fixture(scope="module")

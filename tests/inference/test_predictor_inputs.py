@@ -1,4 +1,4 @@
-"""`predictor.check_inputs`: seeds like the CLI, scenarios against the highD reader's bounds."""
+"""`predictor_inputs.check_inputs`: seeds like the CLI, scenarios against the reader's bounds."""
 
 import math
 import warnings
@@ -8,7 +8,7 @@ import pytest
 
 from cvmdx_jax import constants
 from cvmdx_jax.data.scenarios import Scenarios, from_arrays
-from cvmdx_jax.inference.predictor import UnusualScenarioWarning, check_inputs
+from cvmdx_jax.inference.predictor_inputs import UnusualScenarioWarning, check_inputs
 
 
 def _scenarios(m=3, **fields) -> Scenarios:
