@@ -12,8 +12,9 @@ toward -x (upper lanes), 2 toward +x (lower lanes).
 Road frame per direction (right-handed, x along travel, y to the driver's left), applied to
 the bounding-box centre and to velocities: direction 2: (x, -y); direction 1: (-x, y).
 
-Columns the pipeline reads (`READ_COLUMNS`) are checked strictly: a `DataError` names the
-first row outside these ranges (`RANGES`):
+Columns the pipeline reads (`READ_COLUMNS`) are checked strictly (the ranges as each file
+is read, the relations between columns and files in `data.highd_checks`): a `DataError`
+names the first row outside these ranges (`RANGES`):
 - every numeric cell finite and within +-1e9 (catches 1e30 / 1e40 anywhere);
 - integer columns (frame, ids, laneId, frame counts, drivingDirection, frameRate) hold
   whole numbers: frame, initialFrame, finalFrame in [0, 1e7]; id in [1, 1e6], neighbour
@@ -45,10 +46,8 @@ import re
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
-from cvmdx_jax import constants
-from cvmdx_jax.data import extract
+from cvmdx_jax.data import extract, highd_checks
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.data.highd_csv import read_table
@@ -56,17 +55,12 @@ from cvmdx_jax.data.highd_format import (  # the format's names, read here and b
     ABSURD,
     COLUMNS,
     NEIGHBOUR_COLUMNS,
-    POSITION,
     RANGES,
     READ_COLUMNS,
     RECORDING_META_COLUMNS,
     TRACKS_COLUMNS,
     TRACKS_META_COLUMNS,
 )
-
-MAX_DIRECTION_SLACK = 1.0  # m/s of xVelocity against the driving direction
-MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
-MAX_LATERAL_STEP = 20.0 * constants.DT  # m per frame in y
 
 
 def recordings_dir(data_dir) -> Path:
@@ -106,66 +100,6 @@ def recording_paths(data_dir, recording_id: int) -> dict:
   return {kind: base / f"{prefix}{kind}.csv" for kind in ("tracks", "tracksMeta", "recordingMeta")}
 
 
-def _lane_markings(path: Path, text: str, column: str) -> np.ndarray:
-  """Parses '8.51;12.59;16.43' (>= 2 finite ascending values within +-1e4 m)."""
-  try:
-    values = np.array([float(v) for v in str(text).split(";")])
-  except ValueError:
-    values = np.array([np.nan])
-  if (
-      len(values) < 2
-      or not np.all(np.isfinite(values))
-      or np.any(np.abs(values) > POSITION[1])
-      or np.any(np.diff(values) <= 0)
-  ):
-    raise DataError(
-        path,
-        f"lane markings {text!r} are not >= 2 ascending numbers " "separated by ';'",
-        row=2,
-        column=column,
-    )
-  return values
-
-
-def _check_motion(
-    path: Path, tracks: pd.DataFrame, direction: np.ndarray, same_track: np.ndarray
-) -> None:
-  """drivingDirection against xVelocity, and positions against velocities (docstring)."""
-  vx = tracks["xVelocity"].to_numpy(np.float64)
-  bad = np.where(direction == 2, vx, -vx) < -MAX_DIRECTION_SLACK
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        path,
-        f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
-        f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, "
-        "2 toward +x)",
-        row=row + 2,
-        column="xVelocity",
-    )
-  centre = {
-      c: tracks[c].to_numpy(np.float64) + 0.5 * tracks[s].to_numpy(np.float64)
-      for c, s in (("x", "width"), ("y", "height"))
-  }
-  dx = np.diff(centre["x"]) - 0.5 * (vx[1:] + vx[:-1]) * constants.DT
-  for column, bad in (
-      ("x", np.abs(dx) > MAX_MOTION_MISMATCH),
-      ("y", np.abs(np.diff(centre["y"])) > MAX_LATERAL_STEP),
-  ):
-    bad &= same_track
-    if bad.any():
-      row = int(np.argmax(bad)) + 1
-      raise DataError(
-          path,
-          f"the centre jumps in {column} between frames "
-          f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
-          f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
-          f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
-          row=row + 2,
-          column=column,
-      )
-
-
 @dataclasses.dataclass(frozen=True)
 class Recording:
   """One validated recording, rows sorted by (track id, frame).
@@ -198,93 +132,20 @@ def read_recording(data_dir, recording_id: int) -> Recording:
   """Reads and validates recording `recording_id` of `data_dir`; raises DataError."""
   paths = recording_paths(data_dir, recording_id)
   rec_meta = read_table(paths["recordingMeta"], "recordingMeta")
-  if int(rec_meta["frameRate"].iloc[0]) != constants.FRAME_RATE_HZ:
-    raise DataError(
-        paths["recordingMeta"],
-        f"frame rate {rec_meta['frameRate'].iloc[0]}, " f"expected {constants.FRAME_RATE_HZ}",
-        row=2,
-        column="frameRate",
-    )
-  for column in ("upperLaneMarkings", "lowerLaneMarkings"):
-    _lane_markings(paths["recordingMeta"], rec_meta[column].iloc[0], column)
+  highd_checks.check_recording_meta(paths["recordingMeta"], rec_meta)
   meta = read_table(paths["tracksMeta"], "tracksMeta")
   tracks = read_table(paths["tracks"], "tracks")
   meta_path, path = paths["tracksMeta"], paths["tracks"]
-  bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
-  if bad.any():
-    raise DataError(
-        meta_path,
-        "finalFrame is not initialFrame + numFrames - 1",
-        row=int(np.argmax(bad)) + 2,
-        column="finalFrame",
-    )
-
+  highd_checks.check_tracks_meta(meta_path, meta)
   meta_ids = meta["id"].to_numpy(np.int64)
-  bad = meta["id"].duplicated().to_numpy()
-  if bad.any():
-    raise DataError(
-        meta_path,
-        f"track id {meta_ids[np.argmax(bad)]} appears twice",
-        row=int(np.argmax(bad)) + 2,
-        column="id",
-    )
-  direction_of = meta["drivingDirection"].to_numpy(np.int64)  # 1 or 2 (RANGES)
-  size = meta_ids.max() + 1
-  known = np.zeros(size + 1, bool)
-  known[meta_ids] = True
-
+  highd_checks.check_track_ids(path, meta_path, tracks, meta_ids)
   ids = tracks["id"].to_numpy(np.int64)
   frames = tracks["frame"].to_numpy(np.int64)
-  for column in ("id", *NEIGHBOUR_COLUMNS):
-    values = tracks[column].to_numpy(np.int64)
-    bad = (values != 0) | (column == "id")
-    bad &= ~known[np.clip(values, 0, size)]
-    if bad.any():
-      row = int(np.argmax(bad))
-      raise DataError(
-          path,
-          f"track id {values[row]} does not exist in {meta_path.name}",
-          row=row + 2,
-          column=column,
-      )
-  # Rows must be grouped by track with consecutive frames from the track's initialFrame.
-  meta_first = np.zeros(size, np.int64)
-  meta_first[meta_ids] = meta["initialFrame"].to_numpy(np.int64)
-  meta_num = np.zeros(size, np.int64)
-  meta_num[meta_ids] = meta["numFrames"].to_numpy(np.int64)
-  starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
-  first_row = np.zeros(size, np.int64)
-  first_row[ids[starts]] = starts
-  expected = meta_first[ids] + np.arange(len(ids)) - first_row[ids]
-  bad = frames != expected
-  bad[starts] |= np.bincount(ids[starts], minlength=size)[ids[starts]] > 1
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        path,
-        f"frames of track {ids[row]} are not consecutive from its "
-        f"initialFrame {meta_first[ids[row]]} (rows sorted by id, then frame)",
-        row=row + 2,
-        column="frame",
-    )
-  first_frame = meta_first
-  num_frames = np.zeros(size, np.int64)
-  num_frames[ids[starts]] = np.diff(np.r_[starts, len(ids)])
-  bad = num_frames[meta_ids] != meta_num[meta_ids]
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        meta_path,
-        f"track {meta_ids[row]} has {num_frames[meta_ids[row]]} rows "
-        f"in {path.name} (truncated?)",
-        row=row + 2,
-        column="numFrames",
-    )
-
-  dir_by_id = np.zeros(size, np.int64)
-  dir_by_id[meta_ids] = direction_of
+  first_row, first_frame, num_frames = highd_checks.track_rows(path, meta_path, meta, ids, frames)
+  dir_by_id = np.zeros(meta_ids.max() + 1, np.int64)
+  dir_by_id[meta_ids] = meta["drivingDirection"].to_numpy(np.int64)  # 1 or 2 (RANGES)
   direction = dir_by_id[ids]
-  _check_motion(path, tracks, direction, ids[1:] == ids[:-1])
+  highd_checks.check_motion(path, tracks, direction, ids[1:] == ids[:-1])
   sign = np.where(direction == 2, 1.0, -1.0)
   col = lambda name: tracks[name].to_numpy(np.float64)
   centre_x = col("x") + 0.5 * col("width")

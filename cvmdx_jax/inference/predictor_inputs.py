@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 
 from cvmdx_jax.config.sampling import SamplingConfig
-from cvmdx_jax.data import highd
+from cvmdx_jax.data import highd_checks, highd_format
 from cvmdx_jax.data.scenarios import Scenarios
 from cvmdx_jax.errors import UserError
 
@@ -20,8 +20,8 @@ class UnusualScenarioWarning(UserWarning):
 INPUT_FIELDS = ("xi", "mask", "v0", "psi0")  # the Scenarios fields a prediction reads
 # The reader's bounds on the ego velocity at t0 (road frame, m/s): x along travel in
 # [-MAX_DIRECTION_SLACK, 100], |y| <= 20; v0 = |velocity| <= hypot(100, 20).
-_VX = (-highd.MAX_DIRECTION_SLACK, highd.RANGES["tracks"]["xVelocity"][1])
-_VY = highd.RANGES["tracks"]["yVelocity"][1]
+_VX = (-highd_checks.MAX_DIRECTION_SLACK, highd_format.RANGES["tracks"]["xVelocity"][1])
+_VY = highd_format.RANGES["tracks"]["yVelocity"][1]
 MAX_V0 = math.hypot(_VX[1], _VY)
 _PI32 = float(np.float32(math.pi))  # pi as float32 holds it (slightly above math.pi)
 
