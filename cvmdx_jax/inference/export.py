@@ -5,8 +5,8 @@
 `checksums.json`):
 
     predict.jax      the whole prediction: tokeniser, sampler, vehicle motion model and
-                     hypotheses, `predict_fn` (inputs and outputs: `predict_inputs`,
-                     `PREDICT_OUTPUTS`)
+                     hypotheses, `export_functions.predict_fn` (inputs and outputs:
+                     `predict_inputs`, `PREDICT_OUTPUTS`)
     denoiser.jax     one evaluation of the denoiser v(x_t, t, q[, cond]), `denoiser_fn`
     manifest.json    names, shapes ("b" the symbolic batch) and dtypes of both, the sampling
                      settings, the runs the parameters come from, the delta limit
@@ -32,7 +32,6 @@ exported on (`jax.default_backend()`, which also picks the U-Net's fast paths).
 """
 
 import dataclasses
-import functools
 import os
 from pathlib import Path
 
@@ -40,9 +39,16 @@ import jax
 import numpy as np
 
 from cvmdx_jax import constants, ego_motion
-from cvmdx_jax.diffusion import cosine_schedule
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import predictor as predictor_lib
+from cvmdx_jax.inference.export_functions import (
+    BATCH,
+    abstract_inputs,
+    denoiser_fn,
+    denoiser_inputs,
+    predict_fn,
+    predict_inputs,
+)
 from cvmdx_jax.models import performance
 from cvmdx_jax.storage import atomic, checksums, identity
 
@@ -51,105 +57,6 @@ DENOISER_FILE = "denoiser.jax"
 ONNX_FILE = "denoiser.onnx"
 MANIFEST_FILE = "manifest.json"
 FORMAT_VERSION = 1
-BATCH = "b"  # the symbolic batch dimension's name in shapes and the manifest
-
-
-def predict_inputs(num_noise_ids: int = 1) -> tuple:
-  """(name, shape with BATCH, dtype) of predict.jax's positional inputs."""
-  return (
-      ("xi", (BATCH, constants.NUM_VEHICLES, constants.T_OBS, 4), "float32"),
-      ("mask", (BATCH, constants.NUM_VEHICLES, constants.T_OBS), "bool"),
-      ("v0", (BATCH,), "float32"),
-      ("psi0", (BATCH,), "float32"),
-      ("seed", (), "uint32"),
-      ("noise_ids", (BATCH, num_noise_ids), "uint32"),
-  )
-
-
-PREDICT_OUTPUTS = (
-    "trajectories",
-    "controls",
-    "mean",
-    "hypothesis_means",
-    "hypothesis_probs",
-    "num_modes",
-    "labels",
-    "q",
-    "delta",
-)
-
-
-def _keys(seed, noise_ids):
-  """(b,) PRNG keys of `noise_ids` (b, K), those of `Predictor.__call__`."""
-  return jax.vmap(functools.partial(predictor_lib._fold_ids, jax.random.key(seed)))(noise_ids)
-
-
-def predict_fn(predictor: predictor_lib.Predictor):
-  """f(xi, mask, v0, psi0, seed, noise_ids) -> {name: array} of `PREDICT_OUTPUTS`: trajectories
-  and controls (b, N, 125, 2), mean (b, 125, 2), hypothesis_means (b, C_max, 125, 2),
-  hypothesis_probs (b, C_max), num_modes (b,), labels (b, N), q (b,), delta (b,); the
-  predictor's parameters are closed over (constants once exported)."""
-  schedule = cosine_schedule(predictor.denoiser.config.diffusion.num_steps)
-
-  def f(xi, mask, v0, psi0, seed, noise_ids):
-    pred, q, delta = predictor_lib._predict(
-        predictor.tokenizer,
-        predictor.denoiser,
-        xi,
-        mask,
-        v0,
-        psi0,
-        _keys(seed, noise_ids),
-        schedule,
-        config=predictor.sampling,
-    )
-    hyp = pred.hypotheses
-    return {
-        "trajectories": pred.trajectories,
-        "controls": pred.controls,
-        "mean": pred.mean,
-        "hypothesis_means": hyp.means,
-        "hypothesis_probs": hyp.probs,
-        "num_modes": hyp.num_modes,
-        "labels": hyp.labels,
-        "q": q,
-        "delta": delta,
-    }
-
-  return f
-
-
-def cond_dim(predictor: predictor_lib.Predictor) -> int:
-  """Width of the denoiser's FiLM input (0: none): ego features, the drawn intent's
-  one-hot, then w for a guidance student (`diffusion.distillation.student_cond`)."""
-  return predictor.denoiser.config.model.cond_dim
-
-
-def denoiser_fn(predictor: predictor_lib.Predictor):
-  """f(x_t (b, 125, 2) f32, t (b,) int32, q (b,) int32[, cond (b, cond_dim) f32]) -> v
-  (b, 125, 2): one evaluation of the prepared denoiser."""
-  denoiser = predictor.denoiser
-  if cond_dim(predictor):
-    return lambda x_t, t, q, cond: denoiser.apply(x_t, t, q, cond)
-  return lambda x_t, t, q: denoiser.apply(x_t, t, q)
-
-
-def denoiser_inputs(predictor: predictor_lib.Predictor) -> tuple:
-  """(name, shape, dtype) of denoiser.jax's inputs."""
-  inputs = (
-      ("x_t", (BATCH, constants.T_PRED, 2), "float32"),
-      ("t", (BATCH,), "int32"),
-      ("q", (BATCH,), "int32"),
-  )
-  c = cond_dim(predictor)
-  return inputs + ((("cond", (BATCH, c), "float32"),) if c else ())
-
-
-def _abstract(inputs, batch) -> list:
-  return [
-      jax.ShapeDtypeStruct(tuple(batch if d == BATCH else d for d in shape), dtype)
-      for _, shape, dtype in inputs
-  ]
 
 
 def _spec(name, shape, dtype) -> dict:
@@ -165,7 +72,7 @@ def export_bytes(f, inputs) -> tuple[bytes, list]:
   specs [{name, shape, dtype}] in the artefact's flat output order)."""
   (batch,) = jax.export.symbolic_shape(BATCH)
   exported = jax.export.export(jax.jit(f), platforms=(jax.default_backend(),))(
-      *_abstract(inputs, batch)
+      *abstract_inputs(inputs, batch)
   )
   outputs = [
       _spec(n, a.shape, a.dtype) for n, a in zip(_output_names(exported), exported.out_avals)
@@ -261,7 +168,7 @@ def onnx_bytes(predictor: predictor_lib.Predictor) -> bytes:
   with performance.use(performance.PerformanceOptions(winograd="on", group_norm_backward="off")):
     model = jax2onnx.to_onnx(
         denoiser_fn(predictor),
-        _abstract(inputs, batch),
+        abstract_inputs(inputs, batch),
         model_name="cvmdx_denoiser",
         input_names=[n for n, _, _ in inputs],
         output_names=["v"],
