@@ -14,6 +14,7 @@ single-process code. `check_same_run` makes
 every process compare its run's identity with process 0's before any work.
 """
 
+import contextlib
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -24,6 +25,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from cvmdx_jax import coordination
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import identity
 
@@ -109,9 +111,12 @@ def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, i
   JAX_NUM_PROCESSES and JAX_PROCESS_ID (0 .. JAX_NUM_PROCESSES - 1), or by the cluster's
   launcher (`cluster_launcher`: mpirun, srun, a Kubernetes indexed Job), whose values
   the JAX_* variables override. Without either (or with one process) nothing happens.
-  On CPU the processes talk through gloo. The coordinator takes a process that sent no
-  heartbeat for HEARTBEAT_S seconds for dead and stops the others (JAX aborts them); a
-  collective that fails on a dead peer stops them at once (`train.preemption.lost_peer`).
+  On CPU the processes talk through gloo. Process 0 hosts the coordination service in a
+  child process (`cvmdx_jax.coordination`) that outlives process 0 by `coordination.GRACE_S`.
+  The coordinator takes a process that sent no heartbeat for HEARTBEAT_S seconds for dead
+  and stops the others (JAX aborts them); during training a collective that fails on a dead
+  peer, or a peer silent for 10 s, stops them first with one line
+  (`train.preemption.lost_peer`).
 
   Args:
     env: the environment (default `os.environ`).
@@ -142,16 +147,47 @@ def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, i
         f"{ENV_PROCESS_ID}={index} must be in 0..{count - 1} " f"({ENV_NUM_PROCESSES}={count})"
     )
   jax.config.update("jax_cpu_collectives_implementation", "gloo")
-  jax.distributed.initialize(
-      coordinator_address=coordinator,
-      num_processes=count,
-      process_id=index,
-      local_device_ids=local_ids,
-      cluster_detection_method="deactivate",
-      heartbeat_timeout_seconds=HEARTBEAT_S,
-      shutdown_timeout_seconds=SHUTDOWN_S,
-  )
+  with _service_in_a_child():
+    jax.distributed.initialize(
+        coordinator_address=coordinator,
+        num_processes=count,
+        process_id=index,
+        local_device_ids=local_ids,
+        cluster_detection_method="deactivate",
+        heartbeat_timeout_seconds=HEARTBEAT_S,
+        shutdown_timeout_seconds=SHUTDOWN_S,
+    )
   return jax.process_index(), jax.process_count()
+
+
+class _ServiceInAChild:
+  """jaxlib's module as `jax._src.distributed` sees it, but its coordination service is
+  `coordination.start`'s child process."""
+
+  def __init__(self, jaxlib_module):
+    self._jaxlib = jaxlib_module
+
+  def __getattr__(self, name: str):
+    return getattr(self._jaxlib, name)
+
+  @staticmethod
+  def get_distributed_runtime_service(address, num_nodes, **options):
+    return coordination.start(address, num_nodes, **options)
+
+
+@contextlib.contextmanager
+def _service_in_a_child():
+  """While entered, `jax.distributed.initialize` in process 0 starts the coordination
+  service in a child process (`cvmdx_jax.coordination`: the others then outlive process 0
+  long enough to stop with one line) instead of in this process."""
+  from jax._src import distributed  # pylint: disable=import-outside-toplevel
+
+  jaxlib_module = distributed._jax  # pylint: disable=protected-access
+  distributed._jax = _ServiceInAChild(jaxlib_module)  # pylint: disable=protected-access
+  try:
+    yield
+  finally:
+    distributed._jax = jaxlib_module  # pylint: disable=protected-access
 
 
 class ProcessMismatchError(UserError):
