@@ -18,6 +18,10 @@ fingerprints, settings, input checksums, code version and the summary printed at
 5 s after t0).
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import re
 import subprocess
@@ -27,7 +31,7 @@ import numpy as np
 from absl import app, flags
 
 import cvmdx_jax
-from cvmdx_jax import cli, constants
+from cvmdx_jax import constants
 from cvmdx_jax.data import frames as frames_lib
 from cvmdx_jax.data import highd
 from cvmdx_jax.errors import UserError
@@ -61,7 +65,13 @@ _NUM_SAMPLES = flags.DEFINE_integer(
     "num_samples", None, "Samples per vehicle instead of the " "run's.", lower_bound=1
 )
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_bound=2**32 - 1)
-_CHUNK = flags.DEFINE_integer("chunk_size", 256, "Vehicle-frames per jitted call.", lower_bound=1)
+_CHUNK = flags.DEFINE_integer(
+    "chunk_size",
+    None,
+    "Vehicle-frames per jitted call (default: 256, fewer where their samples would exceed "
+    "4,096 trajectories a call).",
+    lower_bound=1,
+)
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")
 _SECTION = flags.DEFINE_list(
     "animation_x",

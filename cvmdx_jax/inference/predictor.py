@@ -108,6 +108,16 @@ def _fold_ids(key, ids):
   return key
 
 
+SCENARIOS_PER_CALL = 256  # the most scenarios a call holds by default
+SAMPLES_PER_CALL = 4096  # the most sampled trajectories (scenarios x N) a call holds by default
+
+
+def default_chunk(num_samples: int) -> int:
+  """Scenarios per call by default: 256, fewer where N samples each would exceed
+  `SAMPLES_PER_CALL` trajectories (N = 9: 256, N = 64: 64)."""
+  return max(1, min(SCENARIOS_PER_CALL, SAMPLES_PER_CALL // num_samples))
+
+
 @dataclasses.dataclass(frozen=True)
 class Predictor:
   """Trained cVMDx: tokeniser bundle + denoiser + sampling settings.
@@ -123,6 +133,10 @@ class Predictor:
       for a `Predictor` built from bundles).
     delta_limit: the largest delta over the train split; scenarios above it are out of
       distribution (the default, inf, flags none).
+    chunk_size: scenarios per jitted call; None: `default_chunk(num_samples)`, at most
+      `SAMPLES_PER_CALL` sampled trajectories a call, so that a call's memory is bounded
+      by its samples whatever N (the demo's N = 64: 64 scenarios, ~0.65 GiB of XLA
+      temporaries, against ~2.6 GiB for 256; docs/log/2026-12-06-speed.md).
 
   On construction the denoiser's parameters are prepared for inference
   (`unet1d.prepare_params`: the Winograd kernels transformed once, not in every call; the
@@ -134,21 +148,22 @@ class Predictor:
   tokenizer: TokenizerBundle
   denoiser: Denoiser
   sampling: SamplingConfig
-  chunk_size: int = 256
+  chunk_size: int | None = None
   delta_limit: float = math.inf
   train_tokens: tokens_lib.Tokens | None = None
 
   def __post_init__(self):
-    if (
-        isinstance(self.chunk_size, bool)
-        or not isinstance(self.chunk_size, numbers.Integral)
-        or self.chunk_size < 1
-    ):
-      raise UserError(
-          f"chunk_size={self.chunk_size!r}: expected a positive whole number of "
-          "scenarios per call"
-      )
-    object.__setattr__(self, "chunk_size", int(self.chunk_size))
+    if self.chunk_size is not None:
+      if (
+          isinstance(self.chunk_size, bool)
+          or not isinstance(self.chunk_size, numbers.Integral)
+          or self.chunk_size < 1
+      ):
+        raise UserError(
+            f"chunk_size={self.chunk_size!r}: expected a positive whole number of "
+            "scenarios per call (or None: bounded by samples)"
+        )
+      object.__setattr__(self, "chunk_size", int(self.chunk_size))
     check_sampling(self.sampling, self.denoiser.config.diffusion)
     check_student_steps(self.sampling, self.denoiser.fingerprint)
     mesh = sharding.data_mesh()
@@ -158,13 +173,18 @@ class Predictor:
     object.__setattr__(self, "tokenizer", sharding.replicate(self.tokenizer, mesh))
     object.__setattr__(self, "denoiser", sharding.replicate(denoiser, mesh))
 
+  @property
+  def scenarios_per_call(self) -> int:
+    """`chunk_size`, or `default_chunk` of the sampling's N where it is None."""
+    return self.chunk_size or default_chunk(self.sampling.num_samples)
+
   @classmethod
   def load(
       cls,
       tokenizer_dir,
       diffusion_dir,
       sampling: SamplingConfig | None = None,
-      chunk_size: int = 256,
+      chunk_size: int | None = None,
   ) -> "Predictor":
     """Loads both runs and checks that they belong together: the denoiser must have been
     trained on tokens of exactly this tokeniser checkpoint (its fingerprint, which includes
@@ -173,7 +193,7 @@ class Predictor:
     Args:
       tokenizer_dir, diffusion_dir: the two run directories.
       sampling: sampling settings; default: the diffusion run's (`config.sampling`).
-      chunk_size: scenarios per jitted call.
+      chunk_size: scenarios per jitted call (None: `default_chunk`).
 
     Raises:
       IncompatibleRunsError: the denoiser was trained on tokens of another tokeniser
@@ -218,7 +238,7 @@ class Predictor:
       )
     ids = ids.astype(np.uint32)
     mesh = sharding.data_mesh()
-    chunk = -(-self.chunk_size // mesh.size) * mesh.size
+    chunk = -(-self.scenarios_per_call // mesh.size) * mesh.size
     m = len(scenarios)
     chunk = min(chunk, -(-m // mesh.size) * mesh.size)
     base = jax.random.key(int(seed))

@@ -191,7 +191,7 @@ def predict_frames(
 ) -> tuple[VehiclePredictions, dict]:
   """Every vehicle with 3 s of history at each of `frames` of recording `rec`
   (`data.highd.Recording`; with `section` (x0, x1) only those whose image-frame centre x
-  lies in it), in batches of `predictor.chunk_size` over vehicles and frames (observations
+  lies in it), in batches of `predictor.scenarios_per_call` over vehicles and frames (observations
   built per batch; only the hypotheses, and the samples if asked, are kept).
 
   Returns:
@@ -207,7 +207,7 @@ def predict_frames(
     rows = rows[(x >= section[0]) & (x <= section[1])]
   if len(rows) == 0:
     raise UserError(f"{rec.path}: no vehicle has 3 s of history at the chosen frames")
-  block = predictor.chunk_size  # one jitted call each: memory bounded by the samples of one
+  block = predictor.scenarios_per_call  # one jitted call each: memory bounded by the samples of one
   start, cpu = time.perf_counter(), time.process_time()
   parts = [
       predict(

@@ -88,6 +88,25 @@ def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
   assert len(traces) == 2
 
 
+def test_default_chunk_bounds_the_samples_of_a_call_not_the_scenarios(monkeypatch):
+  assert [predict.default_chunk(n) for n in (1, 9, 16, 64, 4096, 10_000)] == [
+      256,
+      256,
+      256,
+      64,
+      1,
+      1,
+  ]
+  monkeypatch.setattr(predict, "SAMPLES_PER_CALL", 6)  # N = 3: 2 scenarios a call
+  predictor = _random_predictor(chunk_size=None)
+  assert predictor.scenarios_per_call == 2
+  scenarios = _scenarios(5)
+  auto = predictor(scenarios, seed=0).prediction.trajectories
+  fixed = dataclasses.replace(predictor, chunk_size=2)(scenarios, seed=0).prediction.trajectories
+  assert auto.shape == (5, 3, 125, 2)
+  np.testing.assert_array_equal(auto, fixed)  # the same chunk shape: the same kernels
+
+
 @pytest.mark.parametrize("name", [pytest.param("diffusion", marks=pytest.mark.slow), "tokenizer"])
 def test_training_step_compiles_once(tmp_path, name):
   init_fn, step_fn, data = task(name, 12)  # batch 8: one full and one padded batch an epoch
