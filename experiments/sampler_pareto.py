@@ -19,6 +19,10 @@ within --tolerance of the reference's (the paper's DDIM-10): with mean ADE alone
 Writes <out_dir>/pareto.md and pareto.json; --from_json re-tabulates a pareto.json.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import json
 from pathlib import Path
@@ -27,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
@@ -161,13 +164,13 @@ def sample_rows() -> tuple[list[dict], str]:
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   runs = [(predictor, sampler, steps, "") for sampler, steps in settings]
   for path in _DISTILLED.value:
+    student = Predictor.load(_TOKENIZER.value, path)
+    steps = (student.sampling.steps,) if student.denoiser.progressive else _STUDENT_STEPS.value
+    # the teacher's N, mode and hypotheses; a student's own sampler (and a progressive
+    # student's own steps, the only ones it samples)
     student = dataclasses.replace(
-        Predictor.load(_TOKENIZER.value, path), sampling=predictor.sampling
-    )
-    steps = (
-        (student.denoiser.config.sampling.steps,)
-        if student.denoiser.progressive
-        else _STUDENT_STEPS.value
+        student,
+        sampling=dataclasses.replace(predictor.sampling, sampler="distilled", steps=int(steps[0])),
     )
     runs += [(student, "distilled", int(s), Path(path).name) for s in steps]
   rows = []

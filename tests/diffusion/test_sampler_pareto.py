@@ -1,8 +1,17 @@
 """experiments/sampler_pareto.py: choosing the default sampler from a Pareto table."""
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
+from configs import distill as distill_config
+from cvmdx_jax.config.runs import DistillRunConfig
+from cvmdx_jax.train import distill
 from experiments import sampler_pareto
+from tests.subprocess_env import environ
 
 
 def _row(sampler, steps, ade):
@@ -57,3 +66,40 @@ def test_markdown_marks_the_choice_and_sorts_by_cost():
   assert [r.split("|")[3].strip() for r in body] == ["4", "6", "8", "10", "10", "20"]
   assert "**(default)**" in body[2] and sum("default" in r for r in body) == 1
   assert "dpmpp2m S = 4" in table[-1] and "chosen on val" in table[-1]
+
+
+@pytest.mark.slow
+def test_the_script_samples_a_progressive_student_at_its_own_steps(tiny_runs, tmp_path):
+  """A progressive student is scored with the teacher's N and its own sampler and steps (the
+  teacher's sampler would be refused by the student's step check)."""
+  config = distill_config.get_config("tiny")
+  config.teacher_dir, config.steps, config.guided_progressive = (
+      str(tiny_runs / "diffusion"),
+      2,
+      True,
+  )
+  distill.train(DistillRunConfig.from_config(config), tmp_path / "student")
+  script = Path(sampler_pareto.__file__)
+  subprocess.run(
+      [
+          sys.executable,
+          str(script),
+          f"--tokenizer_dir={tiny_runs / 'tokenizer'}",
+          f"--diffusion_dir={tiny_runs / 'diffusion'}",
+          f"--data_dir={tiny_runs / 'data'}",
+          f"--out_dir={tmp_path / 'pareto'}",
+          f"--distilled_dirs={tmp_path / 'student'}",
+          "--num_scenarios=3",
+          "--ddim_steps=10",
+          "--dpmpp2m_steps=",
+          "--tolerance=10",
+      ],
+      check=True,
+      env=environ(JAX_PLATFORMS="cpu"),
+      capture_output=True,
+  )
+  rows = json.loads((tmp_path / "pareto" / "pareto.json").read_text())["rows"]
+  assert [(r["sampler"], r["steps"], r["evaluations"]) for r in rows] == [
+      ("ddim", 10, 20),
+      ("distilled", 2, 2),
+  ]
