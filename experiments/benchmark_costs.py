@@ -17,6 +17,10 @@ step each (the last batch padded). Writes <workdir>/costs.json and three log-log
 prints each curve's fitted slope (1 = linear), over all points and over the upper half.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import io
 import statistics
@@ -24,21 +28,16 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import matplotlib
-import ml_collections
 import numpy as np
 from absl import app, flags
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli, constants
+from cvmdx_jax import constants
+from cvmdx_jax.benchmarks import random_models
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig, TokenizerRunConfig
-from cvmdx_jax.data import from_arrays
-from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
 from cvmdx_jax.inference.predictor import Predictor
-from cvmdx_jax.models import tokenizer as tokenizer_lib
-from cvmdx_jax.models import uncertainty, unet1d
 from cvmdx_jax.runs import memory
 from cvmdx_jax.storage import atomic
 from cvmdx_jax.train import diffusion as diffusion_train
@@ -82,45 +81,15 @@ def demo_predictor(num_samples: int, chunk: int) -> Predictor:
   """A `Predictor` of the demo's tokeniser and distilled U-Net, random weights, drawing
   `num_samples` samples per scenario, `chunk` scenarios per call."""
   tok_cfg = TokenizerRunConfig.from_config(tokenizer_config.get_config("demo")).model
-  tok_graphdef, tok_params = tokenizer_lib.init_tokenizer(tok_cfg, jax.random.key(0))
-  q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
-  eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
-  gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = TokenizerBundle(
-      tok_params,
-      gaussians,
-      tok_graphdef,
-      tok_cfg,
-      ml_collections.FrozenConfigDict({"dataset_id": "none"}),
-  )
-  config = student_run_config(q)
-  graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
-  denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
+  config = student_run_config(tok_cfg.quantizer.codebook_size)
   sampling = dataclasses.replace(config.sampling, num_samples=num_samples)
-  return Predictor(tokenizer, denoiser, sampling, chunk_size=chunk)
+  return random_models.random_predictor(tok_cfg, config, sampling, chunk)
 
 
 def student_run_config(num_tokens: int) -> DiffusionRunConfig:
   """configs/diffusion.py:demo for `num_tokens` tokens as its 2-step distilled student."""
   teacher = DiffusionRunConfig.from_config(diffusion_config.get_config("demo"))
   return distill.student_config(teacher.with_tokens(num_tokens), DistillRunConfig(steps=2))
-
-
-def random_scenarios(m: int, seed: int = 0):
-  """`m` scenarios of highway-like random observations (every vehicle present, 30 m/s)."""
-  rng = np.random.default_rng(seed)
-  xi = rng.normal(0.0, 1.0, (m, constants.NUM_VEHICLES, constants.T_OBS, 4)).astype(np.float32)
-  xi[..., 2] += 30.0
-  zeros = np.zeros((m, constants.T_PRED, 2), np.float32)
-  return from_arrays(
-      xi=xi,
-      mask=np.ones(xi.shape[:3], bool),
-      future=zeros,
-      controls=zeros,
-      v0=np.full(m, 30.0, np.float32),
-      psi0=np.zeros(m, np.float32),
-      label=np.arange(m) % 3,
-  )
 
 
 def timed_point(fn, warmup_fn, repeats: int) -> dict:
@@ -139,7 +108,7 @@ def timed_point(fn, warmup_fn, repeats: int) -> dict:
 
 def samples_curve(sizes, m: int, chunk: int, repeats: int) -> list[dict]:
   """Prediction of `m` scenarios (one call) against N."""
-  scenarios, rows = random_scenarios(m), []
+  scenarios, rows = random_models.random_scenarios(m), []
   for n in sizes:
     predictor = demo_predictor(n, chunk)
     call = lambda: predictor(scenarios)
@@ -152,7 +121,7 @@ def scenarios_curve(sizes, n: int, chunk: int, repeats: int) -> list[dict]:
   """Prediction of M scenarios (chunks of `chunk`) against M."""
   predictor, rows = demo_predictor(n, chunk), []
   for m in sizes:
-    scenarios = random_scenarios(m)
+    scenarios = random_models.random_scenarios(m)
     first = scenarios.take(np.arange(min(m, chunk)))  # the chunk's shape, compiled
     point = timed_point(
         lambda: predictor(scenarios), lambda: predictor(first), repeats if m <= chunk else 1

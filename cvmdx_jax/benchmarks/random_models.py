@@ -42,7 +42,7 @@ def random_predictor(
     tokenizer_config: TokenizerConfig,
     config: DiffusionRunConfig,
     sampling: SamplingConfig,
-    chunk_size: int,
+    chunk_size: int | None,
 ) -> Predictor:
   """A `Predictor` of a random tokeniser (key 0) and a random denoiser of `config` (key 1;
   `config` sized for the tokeniser's codebook, `with_tokens`)."""

@@ -1,4 +1,4 @@
-"""experiments/benchmark_costs.py: the log-log slopes, the PNG, the scenarios and the demo
+"""experiments/benchmark_costs.py: the log-log slopes, the PNG and the demo
 models it times."""
 
 import io
@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cvmdx_jax import constants
 from experiments import benchmark_costs as costs
 
 
@@ -30,14 +29,6 @@ def test_plot_is_a_small_png():
   image = Image.open(io.BytesIO(png))
   assert image.format == "PNG" and image.size == (378, 270)
   assert len(png) < 100_000
-
-
-def test_random_scenarios_follow_the_data_contract():
-  s = costs.random_scenarios(5)
-  assert s.xi.shape == (5, constants.NUM_VEHICLES, constants.T_OBS, 4)
-  assert s.xi.dtype == np.float32 and s.mask.all()
-  np.testing.assert_array_equal(s.label, [0, 1, 2, 0, 1])
-  np.testing.assert_array_equal(costs.random_scenarios(5).xi, s.xi)  # seeded
 
 
 @pytest.mark.slow  # ~50 s on 2 busy cores: the demo U-Net's parameters prepared

@@ -8,22 +8,15 @@ extra traces.
 
 import dataclasses
 
-import jax
-import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import pytest
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import constants
+from cvmdx_jax.benchmarks import random_models
 from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.config.sampling import SamplingConfig
-from cvmdx_jax.data import from_arrays
 from cvmdx_jax.inference import predictor as predict
-from cvmdx_jax.inference.bundles import Denoiser, TokenizerBundle
-from cvmdx_jax.models import tokenizer as tokenizer_lib
-from cvmdx_jax.models import uncertainty, unet1d
 from tests.train import toy
 from tests.train.toy_job import task
 
@@ -36,40 +29,16 @@ def _counting(fn, counter: list):
   return wrapped
 
 
-def _random_predictor(chunk_size: int) -> predict.Predictor:
+def _random_predictor(chunk_size: int | None) -> predict.Predictor:
   """A Predictor of untrained :tiny models (the weights do not matter for tracing)."""
   tok_cfg = TokenizerRunConfig.from_config(tokenizer_config.get_config("tiny")).model
-  tok_graphdef, tok_params = tokenizer_lib.init_tokenizer(tok_cfg, jax.random.key(0))
-  q, d = tok_cfg.quantizer.codebook_size, tok_cfg.encoder.latent_dim
-  eye = jnp.broadcast_to(jnp.eye(d), (q, d, d))
-  gaussians = uncertainty.Gaussians(tok_params["codebook"], eye, eye, jnp.ones(q))
-  tokenizer = TokenizerBundle(
-      tok_params,
-      gaussians,
-      tok_graphdef,
-      tok_cfg,
-      ml_collections.FrozenConfigDict({"dataset_id": "none"}),
-  )
-  config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny")).with_tokens(q)
-  graphdef, params = unet1d.init_unet(config.model, jax.random.key(1))
-  denoiser = Denoiser(params, graphdef, config, ml_collections.FrozenConfigDict({}))
+  config = DiffusionRunConfig.from_config(diffusion_config.get_config("tiny"))
+  config = config.with_tokens(tok_cfg.quantizer.codebook_size)
   sampling = SamplingConfig(num_samples=3, steps=2)
-  return predict.Predictor(tokenizer, denoiser, sampling, chunk_size=chunk_size)
+  return random_models.random_predictor(tok_cfg, config, sampling, chunk_size)
 
 
-def _scenarios(m: int):
-  rng = np.random.default_rng(0)
-  xi = rng.normal(0.0, 1.0, (m, constants.NUM_VEHICLES, constants.T_OBS, 4))
-  zeros = np.zeros((m, constants.T_PRED, 2))
-  return from_arrays(
-      xi=xi,
-      mask=np.ones(xi.shape[:3], bool),
-      future=zeros,
-      controls=zeros,
-      v0=np.full(m, 30.0),
-      psi0=np.zeros(m),
-      label=np.arange(m) % 3,
-  )
+_scenarios = random_models.random_scenarios
 
 
 def test_predict_path_compiles_once_per_chunk_shape(monkeypatch):
