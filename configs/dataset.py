@@ -62,15 +62,30 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.splits.test_ood = ()
   c.splits.val_ood = ()
 
-  c.extraction = ml_collections.ConfigDict()
-  c.extraction.lc_offsets_s = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5)  # s before crossing
-  c.extraction.kl_stride_s = 1.0  # s between keep-lane windows of one track
-  c.extraction.balance = True  # undersample each class to the smallest one
-  c.extraction.seed = 0  # balancing draw
-  c.extraction.control_smoothing = 1e-2  # control-difference penalty of the controls fit
-  c.extraction.control_iterations = 8  # Gauss-Newton steps of the controls fit
+  c.extraction = _extraction()
+  c.sumo = _sumo()
+  if arg.small:
+    _small(c.sumo)
+  if arg.tiny:
+    _tiny(c)
+  return c
 
-  s = c.sumo = ml_collections.ConfigDict()
+
+def _extraction() -> ml_collections.ConfigDict:
+  """Scenario extraction from tracks (`cvmdx_jax.data.extract`)."""
+  e = ml_collections.ConfigDict()
+  e.lc_offsets_s = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5)  # s before crossing
+  e.kl_stride_s = 1.0  # s between keep-lane windows of one track
+  e.balance = True  # undersample each class to the smallest one
+  e.seed = 0  # balancing draw
+  e.control_smoothing = 1e-2  # control-difference penalty of the controls fit
+  e.control_iterations = 8  # Gauss-Newton steps of the controls fit
+  return e
+
+
+def _sumo() -> ml_collections.ConfigDict:
+  """The SUMO recordings: splits, geometry, road and traffic ranges, drivers, held-out roads."""
+  s = ml_collections.ConfigDict()
   s.seed = 0  # SUMO seed = seed * 1000 + recording id; plan draws seeded by (seed, id)
   s.recordings = ml_collections.ConfigDict(  # recordings per split, numbered 1.. in this order
       {"train": 10, "val": 2, "test": 3, "test_ood": 2, "val_ood": 1}
@@ -96,39 +111,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   s.car_types = 3  # car vTypes per recording
   s.truck_types = 2  # truck vTypes per recording
   s.type_spread = 0.3  # fraction of each range a vType may lie from the recording's centre
-  s.car = ml_collections.ConfigDict(
-      {
-          "length_m": (4.2, 5.0),
-          "width_m": (1.75, 2.0),
-          "speed_factor": (0.95, 1.15),  # mean desired speed / speed limit
-          "speed_dev": (0.08, 0.15),  # per-vehicle spread of the speed factor
-          "accel": (1.5, 3.0),
-          "decel": (3.5, 5.0),
-          "sigma": (0.1, 0.5),
-          "tau": (0.9, 1.5),
-          "lc_speed_gain": (1.0, 6.0),
-          "lc_keep_right": (0.5, 3.0),  # log-uniform
-          "max_speed_lat": (0.7, 1.3),
-          "lc_accel_lat": (0.6, 1.2),
-      }
-  )
-  s.truck = ml_collections.ConfigDict(
-      {
-          "length_m": (12.0, 18.0),
-          "width_m": (2.45, 2.55),
-          "speed_factor": (1.0, 1.0),
-          "speed_dev": (0.03, 0.05),
-          "desired_max_speed_kmh": (80.0, 92.0),  # trucks keep to their own cap
-          "accel": (0.6, 1.2),
-          "decel": (3.0, 4.0),
-          "sigma": (0.05, 0.3),
-          "tau": (1.2, 2.0),
-          "lc_speed_gain": (0.2, 1.5),
-          "lc_keep_right": (1.0, 4.0),
-          "max_speed_lat": (0.4, 0.8),
-          "lc_accel_lat": (0.3, 0.7),
-      }
-  )
+  s.car = _car()
+  s.truck = _truck()
   # The held-out road of the test_ood recordings (drivers drawn as above).
   s.held_out = ml_collections.ConfigDict(
       {
@@ -150,25 +134,72 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
           "duration_s": 120.0,
       }
   )
+  return s
 
-  if arg.small:
-    # 12 train recordings (6 until 2026-11-23): with the demo's steps unchanged (30 epochs
-    # instead of 60), val mean-of-9 ADE 0.87 against 0.90 over three seeds (BUILD_NOTES.md,
-    # "Twice the roads")
-    s.recordings = ml_collections.ConfigDict(
-        {"train": 12, "val": 2, "test": 2, "test_ood": 1, "val_ood": 1}
-    )
-    s.duration_s = 120.0
-    s.held_out.duration_s = 40.0
-    s.val_held_out.duration_s = 60.0
-  if arg.tiny:
-    s.recordings = ml_collections.ConfigDict(
-        {"train": 2, "val": 1, "test": 1, "test_ood": 1, "val_ood": 0}
-    )
-    s.duration_s = 60.0
-    s.held_out.duration_s = 60.0
-    s.road_length_m = 900.0
-    s.section_length_m = 500.0
-    s.warmup_s = 30.0
-    c.extraction.control_iterations = 4
-  return c
+
+def _car() -> ml_collections.ConfigDict:
+  """The ranges of a recording's car drivers (SUMO vType parameters, SI units)."""
+  return ml_collections.ConfigDict(
+      {
+          "length_m": (4.2, 5.0),
+          "width_m": (1.75, 2.0),
+          "speed_factor": (0.95, 1.15),  # mean desired speed / speed limit
+          "speed_dev": (0.08, 0.15),  # per-vehicle spread of the speed factor
+          "accel": (1.5, 3.0),
+          "decel": (3.5, 5.0),
+          "sigma": (0.1, 0.5),
+          "tau": (0.9, 1.5),
+          "lc_speed_gain": (1.0, 6.0),
+          "lc_keep_right": (0.5, 3.0),  # log-uniform
+          "max_speed_lat": (0.7, 1.3),
+          "lc_accel_lat": (0.6, 1.2),
+      }
+  )
+
+
+def _truck() -> ml_collections.ConfigDict:
+  """The ranges of a recording's truck drivers (SUMO vType parameters, SI units)."""
+  return ml_collections.ConfigDict(
+      {
+          "length_m": (12.0, 18.0),
+          "width_m": (2.45, 2.55),
+          "speed_factor": (1.0, 1.0),
+          "speed_dev": (0.03, 0.05),
+          "desired_max_speed_kmh": (80.0, 92.0),  # trucks keep to their own cap
+          "accel": (0.6, 1.2),
+          "decel": (3.0, 4.0),
+          "sigma": (0.05, 0.3),
+          "tau": (1.2, 2.0),
+          "lc_speed_gain": (0.2, 1.5),
+          "lc_keep_right": (1.0, 4.0),
+          "max_speed_lat": (0.4, 0.8),
+          "lc_accel_lat": (0.3, 0.7),
+      }
+  )
+
+
+def _small(s: ml_collections.ConfigDict) -> None:
+  """`:small` (the demo) on the sumo section `s`."""
+  # 12 train recordings (6 until 2026-11-23): with the demo's steps unchanged (30 epochs
+  # instead of 60), val mean-of-9 ADE 0.87 against 0.90 over three seeds (BUILD_NOTES.md,
+  # "Twice the roads")
+  s.recordings = ml_collections.ConfigDict(
+      {"train": 12, "val": 2, "test": 2, "test_ood": 1, "val_ood": 1}
+  )
+  s.duration_s = 120.0
+  s.held_out.duration_s = 40.0
+  s.val_held_out.duration_s = 60.0
+
+
+def _tiny(c: ml_collections.ConfigDict) -> None:
+  """`:tiny` (tests)."""
+  s = c.sumo
+  s.recordings = ml_collections.ConfigDict(
+      {"train": 2, "val": 1, "test": 1, "test_ood": 1, "val_ood": 0}
+  )
+  s.duration_s = 60.0
+  s.held_out.duration_s = 60.0
+  s.road_length_m = 900.0
+  s.section_length_m = 500.0
+  s.warmup_s = 30.0
+  c.extraction.control_iterations = 4
