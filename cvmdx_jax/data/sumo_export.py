@@ -148,10 +148,23 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
   """
   if 2 * plan.road.lanes + 3 >= 16:
     raise UserError(f"sumo export: {plan.road.lanes} lanes per direction, at most 6")
-  recording_id = plan.recording_id
-  t = _tracks_from_fcd(fcd, cfg, plan)
   upper, lower = _image_markings(cfg, plan.road)
-  markings = np.sort(np.r_[upper, lower])
+  t = _track_rows(fcd, cfg, plan, np.sort(np.r_[upper, lower]))
+  tracks = t[list(highd.TRACKS_COLUMNS)]
+  meta = _tracks_meta(t)
+  rec_meta = _recording_meta(plan, meta, upper, lower)
+  out_dir.mkdir(parents=True, exist_ok=True)
+  paths = highd.recording_paths(out_dir, plan.recording_id)
+  _write_csv(tracks, paths["tracks"])
+  _write_csv(meta[list(highd.TRACKS_META_COLUMNS)], paths["tracksMeta"])
+  _write_csv(rec_meta[list(highd.RECORDING_META_COLUMNS)], paths["recordingMeta"])
+  return len(tracks)
+
+
+def _track_rows(fcd: pd.DataFrame, cfg, plan, markings: np.ndarray) -> pd.DataFrame:
+  """The rows of XX_tracks.csv (and the columns tracksMeta is computed from), rounded to
+  0.01; `markings` the image y of every lane marking, ascending."""
+  t = _tracks_from_fcd(fcd, cfg, plan)
   t["x"] = (t["xc"] - 0.5 * t["width"]).round(2)
   t["y"] = (t["yc"] - 0.5 * t["height"]).round(2)
   # laneId of the centre as written (rounded), so readers recompute the same lane.
@@ -174,13 +187,15 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
   t["precedingXVelocity"] = pre_vx
   for column in highd.NEIGHBOUR_COLUMNS:
     t[column] = nb[column]
-  t = t.round(2)
-  tracks = t[list(highd.TRACKS_COLUMNS)]
+  return t.round(2)
 
+
+def _tracks_meta(t: pd.DataFrame) -> pd.DataFrame:
+  """One XX_tracksMeta.csv row per track of the rows `t`."""
   g = t.groupby("id", sort=True)
   abs_vx = t["xVelocity"].abs().groupby(t["id"])
   positive = lambda col: t[col].where(t[col] > 0).groupby(t["id"]).min().fillna(-1)
-  meta = pd.DataFrame(
+  return pd.DataFrame(
       {
           "id": g["id"].first(),
           "width": g["width"].first(),
@@ -200,12 +215,17 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
           "numLaneChanges": g["laneId"].agg(lambda x: int(np.count_nonzero(np.diff(x.to_numpy())))),
       }
   ).round(2)
+
+
+def _recording_meta(plan, meta: pd.DataFrame, upper, lower) -> pd.DataFrame:
+  """The one XX_recordingMeta.csv row of `plan`'s recording with tracks `meta` and the
+  lane markings `upper`, `lower` (image y, m)."""
   num_frames = int(round(plan.duration_s * constants.FRAME_RATE_HZ))
   fmt = lambda values: ";".join(f"{v:.2f}" for v in values)
-  rec_meta = pd.DataFrame(
+  return pd.DataFrame(
       [
           {
-              "id": recording_id,
+              "id": plan.recording_id,
               "frameRate": constants.FRAME_RATE_HZ,
               "locationId": 0,
               "speedLimit": round(plan.road.speed_limit_ms, 2),
@@ -223,9 +243,3 @@ def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
           }
       ]
   )
-  out_dir.mkdir(parents=True, exist_ok=True)
-  paths = highd.recording_paths(out_dir, recording_id)
-  _write_csv(tracks, paths["tracks"])
-  _write_csv(meta[list(highd.TRACKS_META_COLUMNS)], paths["tracksMeta"])
-  _write_csv(rec_meta[list(highd.RECORDING_META_COLUMNS)], paths["recordingMeta"])
-  return len(tracks)
