@@ -24,6 +24,8 @@ Layouts: torch Conv1d (out, in, k) -> flax (k, in, out); Linear (out, in) -> (in
 The number of attention heads is not stored in a state dict (official default 4).
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -88,6 +90,30 @@ def _attention(state, p: str, heads: int, get) -> dict[str, tuple]:
   return out
 
 
+def _conv(get, p: str) -> dict:
+  """A Conv1d's kernel (torch (out, in, k) -> ours (k, in, out)) and bias, read by `get`."""
+  return {
+      "kernel": (f"{p}.weight", _REVERSED, np.transpose(get(f"{p}.weight", 3), (2, 1, 0))),
+      "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+  }
+
+
+def _linear(get, p: str) -> dict:
+  """A Linear's kernel (torch (out, in) -> ours (in, out)) and bias, read by `get`."""
+  return {
+      "kernel": (f"{p}.weight", _REVERSED, get(f"{p}.weight", 2).T),
+      "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+  }
+
+
+def _norm(get, p: str) -> dict:
+  """A GroupNorm's scale and bias, read by `get`."""
+  return {
+      "scale": (f"{p}.weight", _SAME, get(f"{p}.weight", 1)),
+      "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
+  }
+
+
 def _converted(state, cfg: UNetConfig) -> tuple[dict[str, tuple], set[str]]:
   """{our parameter path: (official name, our shape -> torch shape, array)} and the
   official names used; each official parameter checked to have the dimensions its
@@ -107,23 +133,7 @@ def _converted(state, cfg: UNetConfig) -> tuple[dict[str, tuple], set[str]]:
   def put(ours, arrays):
     out.update({f"{ours}.{k}": v for k, v in arrays.items()})
 
-  def conv(p):
-    return {
-        "kernel": (f"{p}.weight", _REVERSED, np.transpose(get(f"{p}.weight", 3), (2, 1, 0))),
-        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
-    }
-
-  def linear(p):
-    return {
-        "kernel": (f"{p}.weight", _REVERSED, get(f"{p}.weight", 2).T),
-        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
-    }
-
-  def norm(p):
-    return {
-        "scale": (f"{p}.weight", _SAME, get(f"{p}.weight", 1)),
-        "bias": (f"{p}.bias", _SAME, get(f"{p}.bias", 1)),
-    }
+  conv, linear, norm = (functools.partial(f, get) for f in (_conv, _linear, _norm))
 
   def res(p, ours):
     put(f"{ours}.norm1", norm(f"{p}.in_layers.0"))
