@@ -8,7 +8,6 @@ from cvmdx_jax.evaluation import learned_baseline
 from cvmdx_jax.inference import mdn_baseline
 from cvmdx_jax.inference.bundles import load_baseline, load_denoiser
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
-from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import identity
 
 
@@ -70,7 +69,6 @@ def load(
     )
   if ddpm.denoiser.progressive:
     ddpm = None
-  train, _ = tokens_lib.load_tokens(tokens_lib.tokens_path(tokenizer_dir, "train"))
   q_count = predictor.tokenizer.config.quantizer.codebook_size
   dirs = {
       "tokenizer_dir": str(tokenizer_dir),
@@ -79,7 +77,8 @@ def load(
       "baseline_dir": None if baseline_dir is None else str(baseline_dir),
       "mdn_dir": None if mdn_dir is None else str(mdn_dir),
   }
-  return Models(predictor, ddpm, baseline, mdn, np.bincount(train.q, minlength=q_count), dirs)
+  usage = np.bincount(predictor.train_tokens.q, minlength=q_count)  # read by Predictor.load
+  return Models(predictor, ddpm, baseline, mdn, usage, dirs)
 
 
 def sampling_meta(predictor: Predictor) -> dict:
