@@ -24,7 +24,9 @@ unwind `main` first (temporary files and directories are removed, child processe
 as SUMO killed); training resumes from its last checkpoint, other steps are redone.
 After a signal the process ends with `os._exit` once its output is flushed: the exit
 handlers of JAX's and orbax's background threads can crash an interpreter that is
-interrupted mid-computation (a segfault, status 139, instead of 130).
+interrupted mid-computation (a segfault, status 139, instead of 130). Importing this module
+from a script in `experiments/` (their first import of the package) installs the same lines
+and statuses for a signal during the script's imports, before `run`.
 Anything else keeps its traceback, also a plain ValueError (a bad array handed to numpy
 or JAX is a bug of ours, not of the user).
 
@@ -40,14 +42,31 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
-from absl import app, flags
-from ml_collections.config_flags.config_flags import is_config_flag
 
-from cvmdx_jax import cli_config, host_allocator
-from cvmdx_jax.config.fields import ConfigFieldError
-from cvmdx_jax.errors import UserError
-from cvmdx_jax.models import performance
-from cvmdx_jax.train import preemption
+def _stopped_while_importing(signum, frame) -> NoReturn:
+  """SIGINT or SIGTERM before `run` installs its handlers (an entry point's imports take
+  seconds; nothing has started): the signal's line of `_stop`, exit 130 or 143."""
+  del frame
+  what = "interrupted" if signum == signal.SIGINT else "terminated"
+  print(f"{Path(sys.argv[0]).stem}: error: {what}; rerun to resume", file=sys.stderr, flush=True)
+  os._exit(128 + signum)  # pylint: disable=protected-access
+
+
+if Path(getattr(sys.modules["__main__"], "__file__", "") or "").parent.name == "experiments":
+  if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (nohup, &)
+    signal.signal(signal.SIGINT, _stopped_while_importing)
+  if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+    signal.signal(signal.SIGTERM, _stopped_while_importing)
+
+# the imports below take seconds: they run under the handler above
+from absl import app, flags  # noqa: E402
+from ml_collections.config_flags.config_flags import is_config_flag  # noqa: E402
+
+from cvmdx_jax import cli_config, host_allocator  # noqa: E402
+from cvmdx_jax.config.fields import ConfigFieldError  # noqa: E402
+from cvmdx_jax.errors import UserError  # noqa: E402
+from cvmdx_jax.models import performance  # noqa: E402
+from cvmdx_jax.train import preemption  # noqa: E402
 
 FLAGS = flags.FLAGS
 USAGE_STATUS = 2

@@ -9,13 +9,16 @@ finished runs), evaluates on the test split, and writes `<workdir>/ablation.md` 
 most likely p(c) and best-of-K ADE / FDE per row) and `<workdir>/ablation.json`.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 from pathlib import Path
 
 from absl import app, flags
 
 from configs import diffusion as diffusion_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli
 from cvmdx_jax.config.runs import DiffusionRunConfig, TokenizerRunConfig
 from cvmdx_jax.evaluation import report
 from cvmdx_jax.storage import atomic

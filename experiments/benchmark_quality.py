@@ -17,6 +17,10 @@ each run is scored; `--reuse` takes them instead of scoring that run again),
 `bandwidths_<run>.json` and `region_reliability_<split>.png`.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import json
 import time
 from pathlib import Path
@@ -25,7 +29,6 @@ import numpy as np
 from absl import app, flags
 
 from configs import dataset as dataset_config
-from cvmdx_jax import cli
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, learned_baseline, quality, quality_tables, regions

@@ -20,6 +20,10 @@ Run:
   .venv/bin/python experiments/benchmark_sampling.py
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import time
 import warnings
 
@@ -30,7 +34,7 @@ import threadpoolctl
 from absl import app, flags
 from sklearn import decomposition, exceptions, mixture
 
-from cvmdx_jax import cli, diffusion
+from cvmdx_jax import diffusion
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, HypothesisConfig
 from cvmdx_jax.errors import UserError

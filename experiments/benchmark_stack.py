@@ -21,6 +21,10 @@ Prints a table and writes it with the machine (CPU model, cores, load average) t
 (JSON) if given.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import json
 import os
@@ -35,7 +39,7 @@ import jax
 import numpy as np
 from absl import flags
 
-from cvmdx_jax import cli, ego_motion, vmm
+from cvmdx_jax import ego_motion, vmm
 from cvmdx_jax.data import dataset
 from cvmdx_jax.inference import export
 from cvmdx_jax.inference.predictor import Predictor

@@ -14,13 +14,16 @@ token's mean training controls rolled out from the scenario's own state,
 Finished runs are reused (each run resumes from its own workdir).
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import json
 from pathlib import Path
 
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.data import dataset
 from cvmdx_jax.evaluation import baselines, metrics

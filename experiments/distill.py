@@ -8,11 +8,15 @@ the same command resumes from the last complete checkpoint; a workdir distilled 
 another teacher is refused.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import cli, sharding
+from cvmdx_jax import sharding
 from cvmdx_jax.config.runs import DistillRunConfig
 from cvmdx_jax.train import distill
 

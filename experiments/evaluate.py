@@ -12,9 +12,12 @@ the mixture density network (experiments/train_mdn.py). results.md ends with the
 differences of cVMDx against every baseline, with 95 % vehicle-bootstrap intervals.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 from absl import app, flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.config.sampling import SAMPLERS, SamplingConfig
 from cvmdx_jax.evaluation import report
 

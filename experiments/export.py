@@ -11,11 +11,14 @@ with --onnx also <out>/denoiser.onnx;
 baked into predict.jax. experiments/run_exported.py loads and runs them with JAX alone.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 
 from absl import app, flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.config import sampling
 from cvmdx_jax.inference import export
 from cvmdx_jax.inference.predictor import Predictor

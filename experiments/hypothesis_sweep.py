@@ -19,6 +19,10 @@ the lowest Brier-minFDE.
 Writes <out_dir>/sweep.md and sweep.json.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import time
 from pathlib import Path
@@ -28,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 from absl import flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.config.sampling import MAX_SAMPLES, HypothesisConfig
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data import scenarios as scenarios_lib

@@ -16,6 +16,10 @@ or empty; it is held (`locking.hold`) while written, so a second import into it 
 refused, and it gets config.json last: a run with config.json is complete.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import dataclasses
 import shutil
 from pathlib import Path
@@ -25,7 +29,6 @@ import jax.numpy as jnp
 from absl import flags
 
 from configs import diffusion as diffusion_configs
-from cvmdx_jax import cli
 from cvmdx_jax.config.denoiser import PAPER_SCALE
 from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.errors import UserError

@@ -10,6 +10,10 @@ Writes <data_dir>/cache/{train,val,test[,test_ood]}.npz + metadata.json and
 non-zero with a message naming file, row and column on bad input.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import json
 import time
 from pathlib import Path
@@ -17,7 +21,6 @@ from pathlib import Path
 from absl import app, flags
 from ml_collections import config_flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.data import dataset, summary
 from cvmdx_jax.storage import atomic
 

@@ -6,11 +6,14 @@ Reads <data_dir>/recordings (XX_*.csv and plans.json, written by make_dataset.py
 markdown table with one row per recording and writes <data_dir>/recording_stats.json.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 from pathlib import Path
 
 from absl import app, flags
 
-from cvmdx_jax import cli
 from cvmdx_jax.data import sumo_stats
 from cvmdx_jax.storage import atomic
 

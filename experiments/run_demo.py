@@ -17,6 +17,10 @@ presets: dataset `:small`, tokeniser `:demo`, diffusion `:demo`, distillation `:
 baseline `:demo` (change them with the flags below).
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import time
 from pathlib import Path
 
@@ -28,7 +32,6 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from configs import mdn as mdn_config
 from configs import tokenizer as tokenizer_config
-from cvmdx_jax import cli
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.config.runs import (
     BaselineRunConfig,

@@ -6,11 +6,15 @@ Rerunning the same command resumes from the last complete checkpoint. Evaluate i
 cVMDx with `experiments/evaluate.py --baseline_dir=...`.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import cli, sharding
+from cvmdx_jax import sharding
 from cvmdx_jax.config.runs import BaselineRunConfig
 from cvmdx_jax.train import baseline
 

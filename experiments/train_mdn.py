@@ -7,11 +7,15 @@ Rerunning the same command resumes from the last complete checkpoint. Load the t
 model with `cvmdx_jax.inference.mdn_baseline.load_mdn`.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import cli, sharding
+from cvmdx_jax import sharding
 from cvmdx_jax.config.mdn import MDNRunConfig
 from cvmdx_jax.train import mdn
 

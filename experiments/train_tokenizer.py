@@ -6,11 +6,15 @@ Rerunning the same command resumes from the latest checkpoint in --workdir. The 
 does the work (cvmdx_jax.train.tokenizer); this file only parses flags.
 """
 
+from cvmdx_jax import cli  # first: a signal during the imports below is one line
+
+# isort: split
+
 import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from cvmdx_jax import cli, sharding
+from cvmdx_jax import sharding
 from cvmdx_jax.config.runs import TokenizerRunConfig
 from cvmdx_jax.train import tokenizer
 

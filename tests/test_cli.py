@@ -16,6 +16,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -499,3 +500,59 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
     proc.kill()
   assert proc.returncode == 130, stderr
   assert stderr == "sleeper: error: interrupted; rerun to resume\n"
+
+
+def test_every_script_imports_the_runner_first():
+  """cli's import installs the signal lines for the imports that follow it (run_exported.py
+  imports nothing of cvmdx_jax)."""
+  import ast
+
+  for path in sorted((REPO / "experiments").glob("*.py")):
+    if path.stem == "run_exported":
+      continue
+    tree = ast.parse(path.read_text())
+    first = next(n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom)))
+    names = [a.name for a in first.names]
+    assert isinstance(first, ast.ImportFrom) and (first.module, names) == (
+        "cvmdx_jax",
+        ["cli"],
+    ), path.name
+
+
+def _imports_jaxlib(pid: int) -> bool:
+  """Whether process `pid` has loaded jaxlib's extension (it is importing JAX)."""
+  try:
+    return "jaxlib" in Path(f"/proc/{pid}/maps").read_text()
+  except OSError:
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize(
+    "script, signum", [("evaluate", signal.SIGINT), ("train_diffusion", signal.SIGTERM)]
+)
+def test_a_signal_during_the_imports_gives_one_line(script, signum):
+  """The signal arrives once JAX's extension is loaded: the script still has seconds of
+  imports ahead (flax, orbax, its modules) before `cli.run` installs its handlers."""
+  proc = subprocess.Popen(
+      [sys.executable, str(REPO / "experiments" / f"{script}.py")],
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      stdout=subprocess.PIPE,
+      stderr=subprocess.PIPE,
+      text=True,
+      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
+  )
+  try:
+    while not _imports_jaxlib(proc.pid) and proc.poll() is None:
+      time.sleep(0.01)
+    proc.send_signal(signum)
+    out, err = proc.communicate(timeout=60)
+  finally:
+    proc.kill()
+  what = "interrupted" if signum == signal.SIGINT else "terminated"
+  assert (proc.returncode, out, err) == (
+      128 + signum,
+      "",
+      f"{script}: error: {what}; rerun to resume\n",
+  )
