@@ -11,7 +11,6 @@ XX_tracks.csv, XX_tracksMeta.csv and XX_recordingMeta.csv for each, plus `plans.
 import concurrent.futures
 import multiprocessing
 import signal
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -76,7 +75,7 @@ def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
       "--collision.action",
       "warn",
   ]
-  result = subprocess.run(command, capture_output=True, text=True)
+  result = sumo_network.run_program(command)
   if result.returncode != 0:
     raise RuntimeError(f"sumo failed for recording {recording_id}: {result.stderr[-2000:]}")
   frame = pd.read_csv(fcd, sep=";", usecols=list(_FCD_COLUMNS))
@@ -87,7 +86,7 @@ def simulate(cfg, plan, work_dir: Path) -> pd.DataFrame:
 
 def _exit_on_sigterm() -> None:
   """Initializer of a worker process: SIGTERM raises SystemExit, so that the
-  `subprocess.run` it is in kills its SUMO child on the way out."""
+  `sumo_network.run_program` it is in kills its SUMO child on the way out."""
   signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
 

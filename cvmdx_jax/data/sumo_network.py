@@ -8,7 +8,9 @@ is the rightmost lane of its direction. Traffic: Poisson flows per direction fro
 recording's vTypes (`sumo_plan.RecordingPlan`).
 """
 
+import signal
 import subprocess
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,45 @@ _VTYPE_ATTRIBUTES = (
     ("max_speed_lat", "maxSpeedLat"),
     ("lc_accel_lat", "lcAccelLat"),
 )
+
+
+_HELD = (signal.SIGINT, signal.SIGTERM)
+
+
+def _start(command: list[str]) -> subprocess.Popen:
+  """`Popen(command)` (text pipes) with SIGINT and SIGTERM held while it starts: a signal's
+  exception raised inside Popen's constructor, after the child's exec, would lose the child
+  (it would outlive this process, holding its pipes). A held signal kills the child and is
+  then raised again, reaching the handler it was meant for."""
+  held, previous, child = [], {}, None
+  if threading.current_thread() is threading.main_thread():
+    for number in _HELD:
+      previous[number] = signal.signal(number, lambda signum, frame: held.append(signum))
+  try:
+    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+  finally:
+    for number, handler in previous.items():
+      signal.signal(number, signal.SIG_DFL if handler is None else handler)
+    if held and child is not None:
+      child.kill()
+      child.communicate()
+    if held:
+      signal.raise_signal(held[0])
+  return child
+
+
+def run_program(command: list[str], check: bool = False) -> subprocess.CompletedProcess:
+  """`subprocess.run(command, capture_output=True, text=True, check=check)`, whose child is
+  also killed when SIGINT or SIGTERM arrives while it starts (`_start`)."""
+  with _start(command) as child:
+    try:
+      out, err = child.communicate()
+    except BaseException:  # Ctrl-C, SIGTERM: the child goes first
+      child.kill()
+      raise
+  if check and child.returncode:
+    raise subprocess.CalledProcessError(child.returncode, command, out, err)
+  return subprocess.CompletedProcess(command, child.returncode, out, err)
 
 
 def sumo_program(name: str) -> Path:
@@ -81,7 +122,7 @@ def write_network(cfg, road, work_dir: Path, name: str = "highway") -> Path:
       f'  <edge id="W" from="w0" to="w1" {lanes}/>\n'
       "</edges>\n"
   )
-  subprocess.run(
+  run_program(
       [
           str(sumo_program("netconvert")),
           "-n",
@@ -96,7 +137,6 @@ def write_network(cfg, road, work_dir: Path, name: str = "highway") -> Path:
           "true",
       ],
       check=True,
-      capture_output=True,
   )
   return net
 
