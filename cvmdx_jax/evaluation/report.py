@@ -151,6 +151,7 @@ def evaluate(
       "baseline": None
       if models.baseline is None
       else {"dir": models.dirs["baseline_dir"], "epoch": models.baseline.epoch},
+      "checkpoints": models.checkpoints,
       "kl_power_law_fit": fit,
       "reliability": diagram,
       "tokens_in_use_on_split": int(len(np.unique(out.q))),

@@ -1,14 +1,17 @@
 """The trained runs of a report, loaded and checked once for all its splits."""
 
 import dataclasses
+from pathlib import Path
 
+import jax
 import numpy as np
 
 from cvmdx_jax.evaluation import learned_baseline
 from cvmdx_jax.inference import mdn_baseline
 from cvmdx_jax.inference.bundles import load_baseline, load_denoiser
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
-from cvmdx_jax.storage import identity
+from cvmdx_jax.runs import layout
+from cvmdx_jax.storage import checkpointing, identity
 
 
 @dataclasses.dataclass(frozen=True)
@@ -21,6 +24,7 @@ class Models:
     baseline: the WTA MLP (`LearnedBaseline`) or None; mdn: the MDN or None.
     usage: (Q,) training scenarios per token (from the tokeniser's train tokens).
     dirs: {role: run directory} for the report's `_meta`.
+    checkpoints: {role: `restored` record} of every loaded run (`_meta.checkpoints`).
   """
 
   predictor: Predictor
@@ -29,6 +33,19 @@ class Models:
   mdn: object
   usage: np.ndarray
   dirs: dict
+  checkpoints: dict = dataclasses.field(default_factory=dict)
+
+
+def restored(run_dir, params) -> dict:
+  """{"dir", "checkpoint", "params_id"} of a run loaded from `run_dir`: the step (epoch)
+  of its latest complete checkpoint, which the loaders restore, and the content id
+  (`identity.content_id`) of the restored parameters `params`."""
+  root = Path(run_dir) / layout.CHECKPOINTS
+  return {
+      "dir": str(run_dir),
+      "checkpoint": checkpointing.Checkpoints(root, writable=False).latest_epoch,
+      "params_id": identity.content_id(jax.tree.map(np.asarray, params)),
+  }
 
 
 def load(
@@ -77,8 +94,20 @@ def load(
       "baseline_dir": None if baseline_dir is None else str(baseline_dir),
       "mdn_dir": None if mdn_dir is None else str(mdn_dir),
   }
+  loaded = {
+      "tokenizer": (tokenizer_dir, predictor.tokenizer),
+      "diffusion": (diffusion_dir, predictor.denoiser),
+      "ddpm_diffusion": (ddpm_diffusion_dir, ddpm and ddpm.denoiser),
+      "baseline": (baseline_dir, baseline),
+      "mdn": (mdn_dir, mdn),
+  }
+  checkpoints = {
+      role: restored(run_dir, model.params)
+      for role, (run_dir, model) in loaded.items()
+      if run_dir is not None and model is not None
+  }
   usage = np.bincount(predictor.train_tokens.q, minlength=q_count)  # read by Predictor.load
-  return Models(predictor, ddpm, baseline, mdn, usage, dirs)
+  return Models(predictor, ddpm, baseline, mdn, usage, dirs, checkpoints)
 
 
 def sampling_meta(predictor: Predictor) -> dict:
