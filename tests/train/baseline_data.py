@@ -6,8 +6,11 @@ for every mode, so only the token tells the mode: q = label for two thirds of th
 scenarios, a fourth token (no information) for the rest.
 """
 
+import json
+import shutil
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from cvmdx_jax import constants
@@ -61,3 +64,34 @@ def write(data_dir: Path, tokenizer_dir: Path, sizes=(("train", 48), ("val", 24)
     tokens_lib.save_tokens(
         tokens_lib.tokens_path(tokenizer_dir, name), toks, {**meta, "split": name}
     )
+
+
+def run_config(config, root: Path, **train):
+  """A learned baseline's :tiny preset `config` on `write`'s data and tokens under `root`:
+  4 epochs at lr 3e-3, every epoch's checkpoint kept (for the resume test); `train`
+  overrides fields of its train section."""
+  config.data_dir, config.tokenizer_dir = str(root / "data"), str(root / "tokenizer")
+  config.train.num_epochs = 4
+  config.train.learning_rate = 3e-3
+  config.train.keep = 4
+  config.train.update(train)
+  return config
+
+
+def curve(workdir: Path) -> list[dict]:
+  """The metrics lines of the run in `workdir`."""
+  return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+
+
+def assert_resumes_bit_identically(trained: Path, workdir: Path, train_again, params) -> None:
+  """A copy at `workdir` of the finished 4-epoch run `trained` without its epochs 3 and 4 (as
+  if killed after epoch 2), finished by `train_again(workdir)`, ends with `trained`'s
+  parameters (`params(run directory)`) and metrics lines (but the seconds), bit for bit."""
+  shutil.copytree(trained, workdir)
+  for epoch in (3, 4):
+    shutil.rmtree(workdir / "checkpoints" / str(epoch))
+  train_again(workdir)
+  jax.tree.map(np.testing.assert_array_equal, params(workdir), params(trained))
+  assert curve(workdir) == [
+      {**r, "seconds": s["seconds"]} for r, s in zip(curve(trained), curve(workdir))
+  ]

@@ -3,7 +3,6 @@ falls, the epoch chosen on val is the val curve's minimum, a stopped run resumes
 bit-identically, the seed fixes the result, and a bad setting is refused."""
 
 import json
-import shutil
 
 import jax
 import numpy as np
@@ -27,21 +26,11 @@ def dirs(tmp_path_factory):
 
 
 def _config(dirs, **train):
-  config = baseline_config.get_config("tiny")
-  config.data_dir, config.tokenizer_dir = str(dirs / "data"), str(dirs / "tokenizer")
-  config.train.num_epochs = 4
-  config.train.learning_rate = 3e-3
-  config.train.keep = 4  # every epoch's checkpoint, for the resume test
-  config.train.update(train)
-  return config
+  return baseline_data.run_config(baseline_config.get_config("tiny"), dirs, **train)
 
 
 def _train(config, workdir):
   return baseline.train(BaselineRunConfig.from_config(config), workdir)
-
-
-def _curve(workdir):
-  return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
 def _params(workdir):
@@ -56,7 +45,7 @@ def trained(dirs):
 
 
 def test_loss_falls_and_the_val_minimum_is_kept(trained):
-  curve = _curve(trained)
+  curve = baseline_data.curve(trained)
   assert [r["epoch"] for r in curve] == [1, 2, 3, 4]
   assert curve[-1]["loss"] < curve[0]["loss"]
   assert curve[-1]["val_min_ade"] < curve[0]["val_min_ade"]
@@ -74,15 +63,9 @@ def test_loss_falls_and_the_val_minimum_is_kept(trained):
 
 
 def test_stopped_run_resumes_bit_identically(dirs, trained):
-  workdir = dirs / "resumed"
-  shutil.copytree(trained, workdir)
-  for epoch in (3, 4):  # as if killed after epoch 2
-    shutil.rmtree(workdir / "checkpoints" / str(epoch))
-  _train(_config(dirs), workdir)
-  jax.tree.map(np.testing.assert_array_equal, _params(workdir), _params(trained))
-  assert _curve(workdir) == [
-      {**r, "seconds": s["seconds"]} for r, s in zip(_curve(trained), _curve(workdir))
-  ]
+  baseline_data.assert_resumes_bit_identically(
+      trained, dirs / "resumed", lambda workdir: _train(_config(dirs), workdir), _params
+  )
 
 
 def test_the_seed_fixes_the_result(dirs, trained):

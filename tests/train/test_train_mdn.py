@@ -4,7 +4,6 @@ epoch is the val curve's minimum, the loaded model is that epoch's mixture, a st
 resumes bit-identically, the seed fixes the result, and bad settings are refused."""
 
 import json
-import shutil
 
 import jax
 import numpy as np
@@ -32,22 +31,13 @@ def dirs(tmp_path_factory):
 
 
 def _config(dirs, **train):
-  config = mdn_config.get_config("tiny")
-  config.data_dir, config.tokenizer_dir = str(dirs / "data"), str(dirs / "tokenizer")
-  config.train.num_epochs = 4
-  config.train.learning_rate = 3e-3
-  config.train.keep = 4  # every epoch's checkpoint, for the resume test
+  config = baseline_data.run_config(mdn_config.get_config("tiny"), dirs, **train)
   config.loss.warmup_epochs = 1
-  config.train.update(train)
   return config
 
 
 def _train(config, workdir):
   return mdn_train.train(MDNRunConfig.from_config(config), workdir)
-
-
-def _curve(workdir):
-  return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
 def _params(workdir):
@@ -62,7 +52,7 @@ def trained(dirs):
 
 
 def test_val_nll_falls_and_the_val_minimum_is_kept(dirs, trained):
-  curve = _curve(trained)
+  curve = baseline_data.curve(trained)
   assert [r["epoch"] for r in curve] == [1, 2, 3, 4]
   assert curve[-1]["val_nll"] < curve[0]["val_nll"]
   scores = [r["val_loss"] for r in curve]
@@ -89,15 +79,9 @@ def test_val_nll_falls_and_the_val_minimum_is_kept(dirs, trained):
 
 
 def test_stopped_run_resumes_bit_identically(dirs, trained):
-  workdir = dirs / "resumed"
-  shutil.copytree(trained, workdir)
-  for epoch in (3, 4):  # as if killed after epoch 2
-    shutil.rmtree(workdir / "checkpoints" / str(epoch))
-  _train(_config(dirs), workdir)
-  jax.tree.map(np.testing.assert_array_equal, _params(workdir), _params(trained))
-  assert _curve(workdir) == [
-      {**r, "seconds": s["seconds"]} for r, s in zip(_curve(trained), _curve(workdir))
-  ]
+  baseline_data.assert_resumes_bit_identically(
+      trained, dirs / "resumed", lambda workdir: _train(_config(dirs), workdir), _params
+  )
 
 
 def test_another_seed_gives_other_parameters(dirs, trained):
