@@ -128,16 +128,21 @@ class LearnedBaseline:
   def __call__(self, q, delta, xi, mask, v0, psi0):
     """(trajectories (M, K, 125, 2) m, probabilities (M, K)) from tokens q (M,), delta
     (M,) and the observed scenarios xi (M, 9, 75, 4), mask (M, 9, 75), v0, psi0 (M,)."""
-    out = _hypotheses(
-        self,
-        jnp.asarray(q, jnp.int32),
-        jnp.asarray(delta, jnp.float32),
-        jnp.asarray(xi, jnp.float32),
-        jnp.asarray(mask, bool),
-        jnp.asarray(v0, jnp.float32),
-        jnp.asarray(psi0, jnp.float32),
-    )
+    out = _hypotheses(self, *baseline_inputs(q, delta, xi, mask, v0, psi0))
     return tuple(np.asarray(a) for a in out)
+
+
+def baseline_inputs(q, delta, xi, mask, v0, psi0) -> tuple[jax.Array, ...]:
+  """A learned baseline's inputs as the arrays its jitted call takes: q int32, delta, xi, v0,
+  psi0 float32, mask bool (shapes as `LearnedBaseline.__call__`)."""
+  return (
+      jnp.asarray(q, jnp.int32),
+      jnp.asarray(delta, jnp.float32),
+      jnp.asarray(xi, jnp.float32),
+      jnp.asarray(mask, bool),
+      jnp.asarray(v0, jnp.float32),
+      jnp.asarray(psi0, jnp.float32),
+  )
 
 
 @jax.jit

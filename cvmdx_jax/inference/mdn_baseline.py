@@ -13,13 +13,13 @@ import dataclasses
 import os
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 from flax import nnx
 
 from cvmdx_jax import ego_motion
 from cvmdx_jax.config.mdn import MDNRunConfig
+from cvmdx_jax.inference.bundles import baseline_inputs
 from cvmdx_jax.inference.distributions import GaussianMixture
 from cvmdx_jax.models import mdn
 from cvmdx_jax.runs import loaders
@@ -49,15 +49,7 @@ class MixtureDensityBaseline:
     """The mixture (means, stds (M, K, 125, 2) m, weights (M, K), numpy) from tokens q
     (M,), delta (M,) and the observed scenarios xi (M, 9, 75, 4), mask (M, 9, 75), v0,
     psi0 (M,)."""
-    out = _mixture(
-        self,
-        jnp.asarray(q, jnp.int32),
-        jnp.asarray(delta, jnp.float32),
-        jnp.asarray(xi, jnp.float32),
-        jnp.asarray(mask, bool),
-        jnp.asarray(v0, jnp.float32),
-        jnp.asarray(psi0, jnp.float32),
-    )
+    out = _mixture(self, *baseline_inputs(q, delta, xi, mask, v0, psi0))
     return jax.tree.map(np.asarray, out)
 
 
