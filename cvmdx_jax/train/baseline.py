@@ -228,7 +228,7 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   config = config.with_tokens(int(meta["codebook_size"]))
   model_cfg = config.model
-  steps_per_epoch = -(-len(data["q"]) // config.train.batch_size)
+  steps_per_epoch = loop.steps_per_epoch(len(data["q"]), config.train.batch_size)
   tx = optimizer(config.train, steps_per_epoch * config.train.num_epochs)
   graphdef = mc.make_graphdef(model_cfg)
   cls_weight = config.loss.cls_weight
@@ -250,12 +250,8 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
           select=config.train.select_metric,
       ),
       data=data,
-      batch_size=config.train.batch_size,
-      num_epochs=config.train.num_epochs,
-      seed=config.seed,
       fingerprint=fingerprints.baseline(config, dataset_id, meta),
-      checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep,
+      **loop.run_settings(config),
       epoch_end_fn=val_summary,
       on_start=lambda: layout.write_run_config(workdir, config),
       desc="baseline",

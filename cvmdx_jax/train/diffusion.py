@@ -185,19 +185,17 @@ def train(config: DiffusionRunConfig, workdir: str | os.PathLike):
   """
   data, num_tokens, dataset_id, tokens_meta = training_data(config)
   config = config.with_tokens(num_tokens)
-  total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
+  total_steps = (
+      loop.steps_per_epoch(len(data["q"]), config.train.batch_size) * config.train.num_epochs
+  )
   _, init_fn, step_fn = init_and_step(config, total_steps)
   return loop.train(
       workdir=workdir,
       init_fn=init_fn,
       step_fn=step_fn,
       data=data,
-      batch_size=config.train.batch_size,
-      num_epochs=config.train.num_epochs,
-      seed=config.seed,
       fingerprint=fingerprints.diffusion(config, dataset_id, tokens_meta),
-      checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep,
+      **loop.run_settings(config),
       on_start=lambda: layout.write_run_config(workdir, config),
       desc="diffusion",
   )

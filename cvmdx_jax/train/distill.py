@@ -251,19 +251,17 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)},
   }
-  total_steps = -(-len(data["q"]) // config.train.batch_size) * config.train.num_epochs
+  total_steps = (
+      loop.steps_per_epoch(len(data["q"]), config.train.batch_size) * config.train.num_epochs
+  )
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(
       workdir=workdir,
       init_fn=make_init_fn(teacher.params, student.model, tx),
       step_fn=make_step_fn(teacher, student, tx, stage=stage, substeps=config.teacher_substeps),
       data=data,
-      batch_size=config.train.batch_size,
-      num_epochs=config.train.num_epochs,
-      seed=config.seed,
       fingerprint=fingerprint,
-      checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep,
+      **loop.run_settings(config),
       on_start=lambda: layout.write_run_config(workdir, student),
       desc=f"distill ({stage})",
   )

@@ -40,6 +40,11 @@ def init_key(seed: int) -> jax.Array:
   return jax.random.fold_in(jax.random.key(seed), _INIT_FOLD)
 
 
+def steps_per_epoch(num_examples: int, batch_size: int) -> int:
+  """Global steps of one epoch over `num_examples` (the last batch padded)."""
+  return -(-num_examples // batch_size)
+
+
 def _trim_metrics(path: Path, epochs_done: int) -> None:
   """Keeps only complete lines of epochs <= epochs_done (a resumed run rewrites the rest)."""
   if not path.exists():
@@ -119,7 +124,7 @@ class EpochRunner:
     self.workdir, self.init_fn, self.data, self.mesh = workdir, init_fn, data, mesh
     self.batch_size, self.seed, self.run_meta = batch_size, seed, run_meta
     self.m = next(iter(data.values())).shape[0]
-    self.steps_per_epoch = -(-self.m // batch_size)
+    self.steps_per_epoch = steps_per_epoch(self.m, batch_size)
     root_key = jax.random.key(seed)
 
     def keyed_step(state, batch, global_step):

@@ -31,9 +31,24 @@ from cvmdx_jax import sharding
 from cvmdx_jax.runs import layout
 from cvmdx_jax.storage import checkpointing, identity, locking
 from cvmdx_jax.train import preemption
-from cvmdx_jax.train.epochs import EpochRunner, State, StepFn, TrainingError, init_key
+from cvmdx_jax.train.epochs import (
+    EpochRunner,
+    State,
+    StepFn,
+    TrainingError,
+    init_key,
+    steps_per_epoch,
+)
 
-__all__ = ["State", "StepFn", "TrainingError", "init_key", "train"]
+__all__ = [
+    "State",
+    "StepFn",
+    "TrainingError",
+    "init_key",
+    "run_settings",
+    "steps_per_epoch",
+    "train",
+]
 
 
 def _abstract_state(init_fn: Callable[[jax.Array], State], mesh) -> State:
@@ -96,6 +111,19 @@ def _run_meta(workdir, data, m: int, batch_size: int, seed: int, fingerprint, sc
         f"run (workdir {workdir})",
     )
   return run_meta
+
+
+def run_settings(config) -> dict:
+  """The keyword arguments of `train` that a run config fixes: batch_size, num_epochs,
+  checkpoint_every and keep of its `train` section, and its `seed`."""
+  section = config.train
+  return {
+      "batch_size": section.batch_size,
+      "num_epochs": section.num_epochs,
+      "seed": config.seed,
+      "checkpoint_every": section.checkpoint_every,
+      "keep": section.keep,
+  }
 
 
 def train(

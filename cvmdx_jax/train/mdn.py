@@ -139,7 +139,7 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
   dataset_id = dataset_lib.dataset_id(config.data_dir)
   config = config.with_tokens(int(meta["codebook_size"]))
   model_cfg = config.model
-  steps_per_epoch = -(-len(data["q"]) // config.train.batch_size)
+  steps_per_epoch = loop.steps_per_epoch(len(data["q"]), config.train.batch_size)
   tx = baseline.optimizer(config.train, steps_per_epoch * config.train.num_epochs)
   graphdef = mdn.make_graphdef(model_cfg)
   val_shapes = jax.eval_shape(
@@ -154,12 +154,8 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
           graphdef, model_cfg, tx, config, val=val, steps_per_epoch=steps_per_epoch
       ),
       data=data,
-      batch_size=config.train.batch_size,
-      num_epochs=config.train.num_epochs,
-      seed=config.seed,
       fingerprint=fingerprint(config, dataset_id, meta),
-      checkpoint_every=config.train.checkpoint_every,
-      keep=config.train.keep,
+      **loop.run_settings(config),
       epoch_end_fn=baseline.val_summary,
       on_start=lambda: layout.write_run_config(workdir, config),
       desc="mdn",
