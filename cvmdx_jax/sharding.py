@@ -25,7 +25,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from cvmdx_jax import coordination
+from cvmdx_jax.distributed import coordination
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import identity
 
@@ -112,7 +112,7 @@ def initialize_distributed(env: Mapping[str, str] | None = None) -> tuple[int, i
   launcher (`cluster_launcher`: mpirun, srun, a Kubernetes indexed Job), whose values
   the JAX_* variables override. Without either (or with one process) nothing happens.
   On CPU the processes talk through gloo. Process 0 hosts the coordination service in a
-  child process (`cvmdx_jax.coordination`) that outlives process 0 by `coordination.GRACE_S`.
+  child process (`distributed.coordination`) that outlives it by `coordination.GRACE_S`.
   The coordinator takes a process that sent no heartbeat for HEARTBEAT_S seconds for dead
   and stops the others (JAX aborts them); during training a collective that fails on a dead
   peer, or a peer silent for 10 s, stops them first with one line
@@ -178,7 +178,7 @@ class _ServiceInAChild:
 @contextlib.contextmanager
 def _service_in_a_child():
   """While entered, `jax.distributed.initialize` in process 0 starts the coordination
-  service in a child process (`cvmdx_jax.coordination`: the others then outlive process 0
+  service in a child process (`distributed.coordination`: the others then outlive process 0
   long enough to stop with one line) instead of in this process."""
   from jax._src import distributed  # pylint: disable=import-outside-toplevel
 

@@ -359,7 +359,7 @@ def test_a_killed_peer_stops_the_other_within_the_bound(tmp_path, victim):
   assert ckpts.latest_epoch >= 2
   init_fn, _ = toy.make_task()
   toy.restore(tmp_path, init_fn)  # the last complete step loads
-  # process 0 too: the coordination service lives on in its child (cvmdx_jax.coordination)
+  # process 0 too: the coordination service lives on in its child (distributed.coordination)
   lines = _error_lines(err)
   assert survivor.returncode == preemption.PEER_LOST_STATUS, err[-3000:]
   assert (

@@ -3,8 +3,8 @@
 JAX runs the service (key-value store, barriers, heartbeats) inside process 0. When process 0
 dies, every other process's client loses it and JAX aborts that process within a second,
 with a multi-line log. `sharding.initialize_distributed` makes process 0 start the service
-through `start` instead: a child process (`python -m cvmdx_jax.coordination`, jaxlib only)
-that serves until process 0 shuts it down, or outlives a dead process 0 by `GRACE_S`
+through `start` instead: a child process (`python -m cvmdx_jax.distributed.coordination`,
+jaxlib only) that serves until process 0 shuts it down, or outlives a dead process 0 by `GRACE_S`
 seconds: long enough for the other processes to find process 0 silent
 (`train.preemption.PeerWatch`: one line, status 75) or for JAX's own heartbeat timeout to
 stop them. The child ignores SIGINT and SIGTERM (a Ctrl-C or a preemption reaches every
@@ -89,7 +89,7 @@ def start(address: str, num_nodes: int, **options) -> ServiceHost:
   service = {"address": address, "num_nodes": num_nodes, **options}
   args = json.dumps({"service_args": service, "grace_s": GRACE_S})
   child = subprocess.Popen(
-      [sys.executable, "-m", "cvmdx_jax.coordination", args],
+      [sys.executable, "-m", "cvmdx_jax.distributed.coordination", args],
       stdin=subprocess.PIPE,
       stdout=subprocess.PIPE,
       stderr=subprocess.DEVNULL,

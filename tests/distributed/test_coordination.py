@@ -1,4 +1,4 @@
-"""The coordination service's child process (cvmdx_jax.coordination); the 2-process runs
+"""The coordination service's child process (cvmdx_jax.distributed.coordination); the 2-process runs
 that rely on it are in tests/train/test_distributed.py."""
 
 import signal
@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from cvmdx_jax import coordination
+from cvmdx_jax.distributed import coordination
 from cvmdx_jax.errors import UserError
 
 
