@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion
-from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling as sampling_lib
 from cvmdx_jax.models import unet1d
+from tests.models import tiny_nets
 
 NULL = 5
 F32 = np.float32
@@ -163,14 +163,7 @@ def test_samplers_take_an_explicit_x_T(schedule):
 
 @pytest.mark.slow
 def test_inference_official_mode_runs_the_official_loop(schedule):
-  cfg = UNetConfig(
-      num_tokens=4,
-      base_channels=16,
-      channel_mult=(1, 2),
-      groups=8,
-      attention_levels=(),
-      num_heads=2,
-  )
+  cfg = tiny_nets.unet_config(4, attention_levels=())
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
   sampling = SamplingConfig(

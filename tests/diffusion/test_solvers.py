@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import diffusion
-from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.diffusion import solvers
 from tests.diffusion.gaussian_data import MU, STD, gaussian_v
+from tests.models import tiny_nets
 
 
 @pytest.fixture(scope="module")
@@ -89,14 +89,7 @@ def test_clip_bounds_every_predicted_x0(schedule):
 def _tiny_unet():
   from cvmdx_jax.models import unet1d
 
-  cfg = UNetConfig(
-      num_tokens=4,
-      base_channels=16,
-      channel_mult=(1, 2),
-      groups=8,
-      attention_levels=(1,),
-      num_heads=2,
-  )
+  cfg = tiny_nets.unet_config(4)
   g, p = unet1d.init_unet(cfg, jax.random.key(0))
   p = jax.tree.map(lambda a: a + 0.02 * jax.random.normal(jax.random.key(1), a.shape), p)
   return cfg, g, p

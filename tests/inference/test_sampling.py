@@ -9,20 +9,13 @@ import pytest
 
 from cvmdx_jax import diffusion, ego_motion, vmm
 from cvmdx_jax.config.denoiser import PAPER_SCALE, DenoiserConfig
-from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.sampling import GuidanceConfig, SamplingConfig
 from cvmdx_jax.inference import sampling
 from cvmdx_jax.models import unet1d
 from tests.inference.denoisers import bundle
+from tests.models import tiny_nets
 
-CFG = UNetConfig(
-    num_tokens=4,
-    base_channels=16,
-    channel_mult=(1, 2),
-    groups=8,
-    attention_levels=(1,),
-    num_heads=2,
-)
+CFG = tiny_nets.unet_config(4)
 SAMPLING = SamplingConfig(num_samples=9, steps=4)
 predict_batch = jax.jit(sampling.predict_batch, static_argnames=sampling.STATIC_ARGNAMES)
 

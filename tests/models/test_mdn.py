@@ -10,27 +10,17 @@ import numpy as np
 import pytest
 from scipy import special, stats
 
-from cvmdx_jax import constants, ego_motion
+from cvmdx_jax import constants
 from cvmdx_jax.config.fields import ConfigFieldError
 from cvmdx_jax.config.mdn import MixtureDensityConfig
 from cvmdx_jax.models import mdn
 from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.train import mdn as mdn_train
+from tests.models import tiny_nets
 
 CFG = MixtureDensityConfig(
     num_tokens=5, num_hypotheses=3, token_dim=4, hidden=(8,), std_floor_m=0.05
 )
-
-
-def _inputs(b=4, seed=0):
-  rng = np.random.default_rng(seed)
-  return {
-      "q": jnp.asarray(rng.integers(0, 5, b), jnp.int32),
-      "delta": jnp.asarray(rng.uniform(0, 9, b), jnp.float32),
-      "ego": jnp.asarray(rng.normal(size=(b, ego_motion.NUM_FEATURES)), jnp.float32),
-      "v0": jnp.asarray(rng.uniform(20, 30, b), jnp.float32),
-      "psi0": jnp.zeros(b, jnp.float32),
-  }
 
 
 def _mixture(b=2, k=3, t=4, seed=0):
@@ -45,7 +35,7 @@ def _mixture(b=2, k=3, t=4, seed=0):
 
 def test_shapes_floor_and_the_means_are_the_multiple_choice_rollout():
   graphdef, params = mdn.init(CFG, jax.random.key(0))
-  x = _inputs()
+  x = tiny_nets.mlp_inputs()
   means, stds, logits = jax.jit(lambda p: mdn.mixture(graphdef, p, CFG, **x))(params)
   assert means.shape == stds.shape == (4, 3, constants.T_PRED, 2) and logits.shape == (4, 3)
   assert np.all(np.asarray(stds) > CFG.std_floor_m) and np.all(np.isfinite(means))

@@ -12,20 +12,10 @@ from cvmdx_jax import constants, ego_motion
 from cvmdx_jax.config.models import MultipleChoiceConfig
 from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.train import baseline
+from tests.models import tiny_nets
 
 T = np.arange(1, constants.T_PRED + 1) * constants.DT  # s after t0
 CFG = MultipleChoiceConfig(num_tokens=5, num_hypotheses=3, token_dim=4, hidden=(8,))
-
-
-def _inputs(b=4, seed=0):
-  rng = np.random.default_rng(seed)
-  return {
-      "q": jnp.asarray(rng.integers(0, 5, b), jnp.int32),
-      "delta": jnp.asarray(rng.uniform(0, 9, b), jnp.float32),
-      "ego": jnp.asarray(rng.normal(size=(b, ego_motion.NUM_FEATURES)), jnp.float32),
-      "v0": jnp.asarray(rng.uniform(20, 30, b), jnp.float32),
-      "psi0": jnp.zeros(b, jnp.float32),
-  }
 
 
 def _line(dx, dy):
@@ -34,7 +24,7 @@ def _line(dx, dy):
 
 def test_shapes_and_probabilities():
   graphdef, params = mc.init(CFG, jax.random.key(0))
-  x = _inputs()
+  x = tiny_nets.mlp_inputs()
   controls, logits = jax.jit(lambda p: mc.apply(graphdef, p, x["q"], x["delta"], x["ego"]))(params)
   assert controls.shape == (4, 3, constants.T_PRED, 2) and logits.shape == (4, 3)
   traj, probs = mc.hypotheses(graphdef, params, CFG, **x)
@@ -96,7 +86,7 @@ def test_padding_rows_do_not_count():
 
 def test_gradient_reaches_only_the_winners_regression_head():
   graphdef, params = mc.init(CFG, jax.random.key(3))
-  x = _inputs(b=1, seed=2)
+  x = tiny_nets.mlp_inputs(b=1, seed=2)
   traj, _ = baseline.forward(graphdef, params, CFG, x)
   winner = 2
   # a truth right beside head 2's trajectory, far from the others

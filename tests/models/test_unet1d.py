@@ -10,17 +10,9 @@ from flax import nnx
 
 from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.models import layers, unet1d
+from tests.models import tiny_nets
 
-TINY = UNetConfig(
-    num_tokens=5,
-    base_channels=16,
-    channel_mult=(1, 2),
-    groups=8,
-    attention_levels=(1,),
-    num_heads=2,
-    dropout=0.1,
-    padded_length=128,
-)
+TINY = tiny_nets.unet_config(5, dropout=0.1, padded_length=128)
 
 
 def _inputs(b=3):
@@ -142,15 +134,7 @@ def test_group_norm_epsilon_is_the_official_1e5():
   np.testing.assert_allclose(norm(x)[0, :, 0], want, rtol=1e-4)
 
 
-EGO = UNetConfig(
-    num_tokens=5,
-    base_channels=16,
-    channel_mult=(1, 2),
-    groups=8,
-    attention_levels=(1,),
-    num_heads=2,
-    cond_dim=13,
-)
+EGO = tiny_nets.unet_config(5, cond_dim=13)
 
 
 def test_conditioning_vector_shapes_params_and_null_branch():

@@ -7,19 +7,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.diffusion import distillation
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.train import distill
+from tests.models import tiny_nets
 
-TINY = UNetConfig(
-    num_tokens=5,
-    base_channels=16,
-    channel_mult=(1, 2),
-    attention_levels=(1,),
-    num_heads=2,
-    groups=8,
-)
+TINY = tiny_nets.unet_config(5)
 
 
 @pytest.mark.parametrize("features,hidden", [(0, ()), (3, ()), (0, (16, 8)), (3, (16, 8))])

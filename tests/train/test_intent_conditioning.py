@@ -12,7 +12,6 @@ from configs import diffusion as diffusion_config
 from configs import distill as distill_config
 from cvmdx_jax import ego_motion
 from cvmdx_jax.config.fields import ConfigFieldError
-from cvmdx_jax.config.models import UNetConfig
 from cvmdx_jax.config.runs import DiffusionRunConfig, DistillRunConfig
 from cvmdx_jax.config.sampling import SamplingConfig, check_sampling
 from cvmdx_jax.diffusion import cosine_schedule
@@ -22,17 +21,9 @@ from cvmdx_jax.runs import fingerprints
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import distill
 from tests.inference.denoisers import bundle
+from tests.models import tiny_nets
 
-EGO = UNetConfig(
-    num_tokens=5,
-    base_channels=16,
-    channel_mult=(1, 2),
-    groups=8,
-    attention_levels=(1,),
-    num_heads=2,
-    cond_dim=10,
-    cond_hidden=(24, 12),
-)
+EGO = tiny_nets.unet_config(5, cond_dim=10, cond_hidden=(24, 12))
 INTENT = dataclasses.replace(EGO, num_intents=3, intent_features=7)
 # the same U-Net reading the real ego features (ego_motion.NUM_FEATURES), as a run's does
 FEATURES = ego_motion.NUM_FEATURES
