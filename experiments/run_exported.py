@@ -12,18 +12,34 @@ default is 0..M-1: scenario i draws its noise from fold_in(key(seed), noise_ids[
 manifest's "keys" entry). predictions.npz gets every output named in the
 manifest. Each artefact's sha256 is checked against checksums.json before it is loaded.
 Not an absl script (it must not need this package): a bad input is one line on stderr and
-exit status 2.
+exit status 2; Ctrl-C (SIGTERM) one line and status 130 (143), from the imports on.
 """
 
 import argparse
 import hashlib
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 
-import jax
-import numpy as np
+
+def _stop(signum, frame) -> None:
+  """SIGINT / SIGTERM: one line, exit 130 / 143 (--out is written only whole)."""
+  del frame
+  what = "interrupted" if signum == signal.SIGINT else "terminated"
+  print(f"run_exported: error: {what}", file=sys.stderr, flush=True)
+  os._exit(128 + signum)  # JAX's exit handlers can crash an interrupted interpreter
+
+
+if __name__ == "__main__":  # before the seconds of JAX's import; an ignored signal stays so
+  if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    signal.signal(signal.SIGINT, _stop)
+  if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+    signal.signal(signal.SIGTERM, _stop)
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 
 def fail(message: str):

@@ -502,21 +502,59 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
   assert stderr == "sleeper: error: interrupted; rerun to resume\n"
 
 
-def test_every_script_imports_the_runner_first():
-  """cli's import installs the signal lines for the imports that follow it (run_exported.py
-  imports nothing of cvmdx_jax)."""
+def test_every_script_handles_signals_before_its_imports():
+  """cli's import installs the signal lines for the imports that follow it; run_exported.py
+  imports nothing of cvmdx_jax and installs its own before it imports anything but the
+  standard library."""
   import ast
 
   for path in sorted((REPO / "experiments").glob("*.py")):
-    if path.stem == "run_exported":
-      continue
     tree = ast.parse(path.read_text())
-    first = next(n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom)))
-    names = [a.name for a in first.names]
-    assert isinstance(first, ast.ImportFrom) and (first.module, names) == (
-        "cvmdx_jax",
-        ["cli"],
-    ), path.name
+    imports = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+    if path.stem == "run_exported":
+      guard = next(n for n in tree.body if isinstance(n, ast.If))  # if __name__ == ...
+      assert "signal.signal(signal.SIGINT, _stop)" in ast.unparse(guard)
+      before = [
+          n.names[0].name if isinstance(n, ast.Import) else n.module
+          for n in imports
+          if n.lineno < guard.lineno
+      ]
+      assert all(name in sys.stdlib_module_names for name in before), before
+      after = [n.names[0].name for n in imports if n.lineno > guard.lineno]
+      assert after == ["jax", "numpy"], after
+      continue
+    names = [a.name for a in imports[0].names]
+    assert (getattr(imports[0], "module", None), names) == ("cvmdx_jax", ["cli"]), path.name
+
+
+def test_run_exported_stops_with_one_line(tmp_path):
+  """run_exported.py blocked reading its manifest (a FIFO) gets Ctrl-C: one line, 130."""
+  (tmp_path / "export").mkdir()
+  fifo = tmp_path / "export" / "manifest.json"
+  os.mkfifo(fifo)
+  proc = subprocess.Popen(
+      [
+          sys.executable,
+          "experiments/run_exported.py",
+          f"--export_dir={tmp_path / 'export'}",
+          f"--inputs={tmp_path / 'in.npz'}",
+          f"--out={tmp_path / 'out.npz'}",
+      ],
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      stdout=subprocess.PIPE,
+      stderr=subprocess.PIPE,
+      text=True,
+      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
+  )
+  try:
+    with open(fifo, "w"):  # returns once the script opened it: it is past its imports
+      proc.send_signal(signal.SIGINT)
+      out, err = proc.communicate(timeout=60)
+  finally:
+    proc.kill()
+  assert (proc.returncode, out, err) == (130, "", "run_exported: error: interrupted\n")
+  assert not (tmp_path / "out.npz").exists()
 
 
 def _imports_jaxlib(pid: int) -> bool:
