@@ -17,6 +17,14 @@ MAX_MOTION_MISMATCH = 1.0  # m per frame between x motion and xVelocity * dt
 MAX_LATERAL_STEP = 20.0 * constants.DT  # m per frame in y
 
 
+def refuse_first(path: Path, bad: np.ndarray, column: str, message) -> None:
+  """DataError at the first data row i where `bad` (one bool per data row) holds, naming
+  its line (i + 2: the header is line 1), `column` and `message(i)`."""
+  if bad.any():
+    row = int(np.argmax(bad))
+    raise DataError(path, message(row), row=row + 2, column=column)
+
+
 def lane_markings(path: Path, text: str, column: str) -> np.ndarray:
   """Parses '8.51;12.59;16.43' (>= 2 finite ascending values within +-1e4 m)."""
   try:
@@ -44,16 +52,13 @@ def check_motion(
   """drivingDirection against xVelocity, and positions against velocities (docstring)."""
   vx = tracks["xVelocity"].to_numpy(np.float64)
   bad = np.where(direction == 2, vx, -vx) < -MAX_DIRECTION_SLACK
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        path,
-        f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
-        f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, "
-        "2 toward +x)",
-        row=row + 2,
-        column="xVelocity",
-    )
+  refuse_first(
+      path,
+      bad,
+      "xVelocity",
+      lambda row: f"xVelocity {vx[row]:g} m/s contradicts drivingDirection "
+      f"{direction[row]} of track {tracks['id'].iloc[row]} (1 drives toward -x, 2 toward +x)",
+  )
   centre = {
       c: tracks[c].to_numpy(np.float64) + 0.5 * tracks[s].to_numpy(np.float64)
       for c, s in (("x", "width"), ("y", "height"))
@@ -63,18 +68,15 @@ def check_motion(
       ("x", np.abs(dx) > MAX_MOTION_MISMATCH),
       ("y", np.abs(np.diff(centre["y"])) > MAX_LATERAL_STEP),
   ):
-    bad &= same_track
-    if bad.any():
-      row = int(np.argmax(bad)) + 1
-      raise DataError(
-          path,
-          f"the centre jumps in {column} between frames "
-          f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
-          f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
-          f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
-          row=row + 2,
-          column=column,
-      )
+    refuse_first(
+        path,
+        np.r_[False, bad & same_track],  # row i: the step from row i - 1
+        column,
+        lambda row, column=column: f"the centre jumps in {column} between frames "
+        f"{tracks['frame'].iloc[row - 1]} and {tracks['frame'].iloc[row]} of "
+        f"track {tracks['id'].iloc[row]} (more than xVelocity / 25 Hz + "
+        f"{MAX_MOTION_MISMATCH:g} m in x, {MAX_LATERAL_STEP:g} m in y)",
+    )
 
 
 def check_recording_meta(path: Path, rec_meta: pd.DataFrame) -> None:
@@ -93,22 +95,12 @@ def check_recording_meta(path: Path, rec_meta: pd.DataFrame) -> None:
 def check_tracks_meta(meta_path: Path, meta: pd.DataFrame) -> None:
   """finalFrame = initialFrame + numFrames - 1 and every track id once."""
   bad = (meta["finalFrame"] != meta["initialFrame"] + meta["numFrames"] - 1).to_numpy()
-  if bad.any():
-    raise DataError(
-        meta_path,
-        "finalFrame is not initialFrame + numFrames - 1",
-        row=int(np.argmax(bad)) + 2,
-        column="finalFrame",
-    )
+  refuse_first(
+      meta_path, bad, "finalFrame", lambda row: "finalFrame is not initialFrame + numFrames - 1"
+  )
   meta_ids = meta["id"].to_numpy(np.int64)
   bad = meta["id"].duplicated().to_numpy()
-  if bad.any():
-    raise DataError(
-        meta_path,
-        f"track id {meta_ids[np.argmax(bad)]} appears twice",
-        row=int(np.argmax(bad)) + 2,
-        column="id",
-    )
+  refuse_first(meta_path, bad, "id", lambda row: f"track id {meta_ids[row]} appears twice")
 
 
 def check_track_ids(
@@ -122,14 +114,12 @@ def check_track_ids(
     values = tracks[column].to_numpy(np.int64)
     bad = (values != 0) | (column == "id")
     bad &= ~known[np.clip(values, 0, size)]
-    if bad.any():
-      row = int(np.argmax(bad))
-      raise DataError(
-          path,
-          f"track id {values[row]} does not exist in {meta_path.name}",
-          row=row + 2,
-          column=column,
-      )
+    refuse_first(
+        path,
+        bad,
+        column,
+        lambda row, values=values: f"track id {values[row]} does not exist in {meta_path.name}",
+    )
 
 
 def track_rows(
@@ -150,25 +140,21 @@ def track_rows(
   expected = meta_first[ids] + np.arange(len(ids)) - first_row[ids]
   bad = frames != expected
   bad[starts] |= np.bincount(ids[starts], minlength=size)[ids[starts]] > 1
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        path,
-        f"frames of track {ids[row]} are not consecutive from its "
-        f"initialFrame {meta_first[ids[row]]} (rows sorted by id, then frame)",
-        row=row + 2,
-        column="frame",
-    )
+  refuse_first(
+      path,
+      bad,
+      "frame",
+      lambda row: f"frames of track {ids[row]} are not consecutive from its "
+      f"initialFrame {meta_first[ids[row]]} (rows sorted by id, then frame)",
+  )
   num_frames = np.zeros(size, np.int64)
   num_frames[ids[starts]] = np.diff(np.r_[starts, len(ids)])
   bad = num_frames[meta_ids] != meta_num[meta_ids]
-  if bad.any():
-    row = int(np.argmax(bad))
-    raise DataError(
-        meta_path,
-        f"track {meta_ids[row]} has {num_frames[meta_ids[row]]} rows "
-        f"in {path.name} (truncated?)",
-        row=row + 2,
-        column="numFrames",
-    )
+  refuse_first(
+      meta_path,
+      bad,
+      "numFrames",
+      lambda row: f"track {meta_ids[row]} has {num_frames[meta_ids[row]]} rows "
+      f"in {path.name} (truncated?)",
+  )
   return first_row, meta_first, num_frames

@@ -76,18 +76,8 @@ COLUMNS = {
 }
 # The columns `read_recording` uses (checked strictly); the others only draw DataWarnings.
 READ_COLUMNS = {
-    "tracks": (
-        "frame",
-        "id",
-        "x",
-        "y",
-        "width",
-        "height",
-        "xVelocity",
-        "yVelocity",
-        "laneId",
-        *NEIGHBOUR_COLUMNS,
-    ),
+    # frame, id, the bounding box (x, y, width, height), xVelocity and yVelocity
+    "tracks": (*TRACKS_COLUMNS[:8], "laneId", *NEIGHBOUR_COLUMNS),
     "tracksMeta": ("id", "initialFrame", "finalFrame", "numFrames", "drivingDirection"),
     "recordingMeta": ("frameRate", "upperLaneMarkings", "lowerLaneMarkings"),
 }
