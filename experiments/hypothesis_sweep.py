@@ -34,7 +34,6 @@ from absl import flags
 
 from cvmdx_jax.config.sampling import MAX_SAMPLES, HypothesisConfig
 from cvmdx_jax.data import dataset
-from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import scoring, sweeps
 from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
@@ -128,9 +127,7 @@ def seconds_per_scenario(fn, count: int) -> float:
 
 def sweep() -> tuple[list[dict], str, int]:
   """Every (N, method) row, a note on the data and the run's own N."""
-  data = dataset.load_split(_DATA.value, _SPLIT.value)
-  if _NUM.value:
-    data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
+  data = dataset.load_balanced(_DATA.value, _SPLIT.value, _SEED.value, _NUM.value)
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   counts = sorted(int(n) for n in _SAMPLES.value)
   configs = {spec: _method(spec, predictor.sampling.hypotheses) for spec in _METHODS.value}

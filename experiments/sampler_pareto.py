@@ -32,7 +32,6 @@ import numpy as np
 from absl import flags
 
 from cvmdx_jax.data import dataset
-from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import scoring
 from cvmdx_jax.inference.predictor import Predictor
@@ -158,9 +157,7 @@ def sample_rows() -> tuple[list[dict], str]:
   settings = [("ddim", int(s)) for s in _DDIM.value] + [("dpmpp2m", int(s)) for s in _DPM.value]
   if REFERENCE not in settings:
     raise UserError(f"--ddim_steps must include {REFERENCE[1]} (the reference setting)")
-  data = dataset.load_split(_DATA.value, _SPLIT.value)
-  if _NUM.value:
-    data = data.take(scenarios_lib.balanced_indices(data.label, _SEED.value, _NUM.value))
+  data = dataset.load_balanced(_DATA.value, _SPLIT.value, _SEED.value, _NUM.value)
   predictor = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
   runs = [(predictor, sampler, steps, "") for sampler, steps in settings]
   for path in _DISTILLED.value:

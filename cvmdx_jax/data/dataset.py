@@ -28,6 +28,7 @@ from cvmdx_jax.config.fields import (
     check_ranges,
 )
 from cvmdx_jax.data import cache, cvmd_mat, extract, highd, sumo, sumo_plan
+from cvmdx_jax.data import scenarios as scenarios_lib
 from cvmdx_jax.data.errors import DataError
 from cvmdx_jax.storage import atomic, identity, locking
 
@@ -251,6 +252,15 @@ def build(config, data_dir) -> dict:
 def load_split(data_dir, split: str):
   """The cached split `split` written by `build` (DataError lists the available ones)."""
   return cache.read_split(Path(data_dir) / "cache", split)
+
+
+def load_balanced(data_dir, split: str, seed: int = 0, size: int = 0):
+  """`load_split`, then a class-balanced subset of `size` scenarios drawn with `seed`
+  (`scenarios.balanced_indices`); `size` 0: the whole split."""
+  scenarios = load_split(data_dir, split)
+  if size:
+    scenarios = scenarios.take(scenarios_lib.balanced_indices(scenarios.label, seed, size))
+  return scenarios
 
 
 def dataset_id(data_dir) -> str:

@@ -169,13 +169,6 @@ def evaluate(
   )
 
 
-def _split(data_dir, split: str, seed: int, max_scenarios: int):
-  scenarios = dataset_lib.load_split(data_dir, split)
-  if max_scenarios:
-    scenarios = scenarios.take(balanced_indices(scenarios.label, seed, max_scenarios))
-  return scenarios
-
-
 @locking.holds("workdir")
 def run(
     *,
@@ -222,7 +215,7 @@ def run(
   Returns:
     The metrics dict written to metrics.json.
   """
-  scenarios = _split(data_dir, split, seed, max_scenarios)
+  scenarios = dataset_lib.load_balanced(data_dir, split, seed, max_scenarios)
   models = report_models.load(
       tokenizer_dir=tokenizer_dir,
       diffusion_dir=diffusion_dir,
@@ -279,7 +272,9 @@ def run_test_and_ood(
         "none); only the test split is evaluated",
         flush=True,
     )
-  loaded = {split: _split(data_dir, split, seed, max_scenarios) for split in splits}
+  loaded = {
+      split: dataset_lib.load_balanced(data_dir, split, seed, max_scenarios) for split in splits
+  }
   models = report_models.load(
       tokenizer_dir=tokenizer_dir,
       diffusion_dir=diffusion_dir,

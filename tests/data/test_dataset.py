@@ -137,3 +137,17 @@ def test_malformed_metadata_means_rebuild(highd_config, highd_dir, tmp_path, edi
   splits = dataset.build(highd_config(), out)  # repairs itself
   assert json.loads(path.read_text()) == good and dataset.dataset_id(out) == ident
   assert len(splits["train"]) == 6
+
+
+def test_load_balanced_takes_a_seeded_class_balanced_subset(tmp_path):
+  from tests.train import baseline_data  # a cached synthetic dataset, labels 0, 1, 2, 0, ...
+
+  baseline_data.write(tmp_path / "data", tmp_path / "tokens")
+  whole = dataset.load_balanced(tmp_path / "data", "train")
+  assert len(whole) == 48
+  subset = dataset.load_balanced(tmp_path / "data", "train", seed=3, size=9)
+  assert np.bincount(subset.label).tolist() == [3, 3, 3]
+  again = dataset.load_balanced(tmp_path / "data", "train", seed=3, size=9)
+  np.testing.assert_array_equal(subset.xi, again.xi)
+  rows = [np.flatnonzero((whole.xi == x).all(axis=(1, 2, 3)))[0] for x in subset.xi]
+  assert len(set(rows)) == 9  # nine different scenarios of the split
