@@ -110,6 +110,15 @@ def _stage(name: str, start: float) -> None:
   print(f"\n=== {name}  (t = {time.perf_counter() - start:.0f} s)", flush=True)
 
 
+def _train_on_tokens(config_module, preset: str, run_cls, trainer, on_tokens, workdir) -> None:
+  """Trains `trainer.train` on the dataset and tokeniser `on_tokens` = (data_dir, tokenizer_dir)
+  into `workdir`, with `config_module`'s `preset` (as `run_cls`) and the demo's seed."""
+  config = config_module.get_config(preset)
+  config.data_dir, config.tokenizer_dir = (str(d) for d in on_tokens)
+  config.seed = _SEED.value
+  trainer.train(run_cls.from_config(config), workdir)
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
@@ -128,10 +137,10 @@ def main(argv):
   tokenizer_train.train(TokenizerRunConfig.from_config(tok_cfg), tok_dir)
 
   _stage(f"3/5 motion diffusion (preset {_DIFFUSION.value}) -> {diff_dir}", start)
-  diff_cfg = diffusion_config.get_config(_DIFFUSION.value)
-  diff_cfg.data_dir, diff_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  diff_cfg.seed = _SEED.value
-  diffusion_train.train(DiffusionRunConfig.from_config(diff_cfg), diff_dir)
+  on_tokens = (data_dir, tok_dir)
+  _train_on_tokens(
+      diffusion_config, _DIFFUSION.value, DiffusionRunConfig, diffusion_train, on_tokens, diff_dir
+  )
 
   teacher = diff_dir
   for i, steps in enumerate(_DISTILL_STEPS.value):
@@ -147,16 +156,12 @@ def main(argv):
     teacher = student
 
   _stage(f"4/5 multiple-choice MLP baseline (preset {_BASELINE.value}) -> {base_dir}", start)
-  base_cfg = baseline_config.get_config(_BASELINE.value)
-  base_cfg.data_dir, base_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  base_cfg.seed = _SEED.value
-  baseline_train.train(BaselineRunConfig.from_config(base_cfg), base_dir)
+  _train_on_tokens(
+      baseline_config, _BASELINE.value, BaselineRunConfig, baseline_train, on_tokens, base_dir
+  )
 
   _stage(f"4b/5 mixture density baseline (preset {_MDN.value}) -> {mdn_dir}", start)
-  mdn_cfg = mdn_config.get_config(_MDN.value)
-  mdn_cfg.data_dir, mdn_cfg.tokenizer_dir = str(data_dir), str(tok_dir)
-  mdn_cfg.seed = _SEED.value
-  mdn_train.train(MDNRunConfig.from_config(mdn_cfg), mdn_dir)
+  _train_on_tokens(mdn_config, _MDN.value, MDNRunConfig, mdn_train, on_tokens, mdn_dir)
 
   _stage(f"5/5 evaluation on the test and test_ood splits -> {root}", start)
   files = []
