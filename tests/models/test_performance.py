@@ -15,21 +15,27 @@ from cvmdx_jax.models.performance import PerformanceOptions
 ON, OFF = PerformanceOptions("on", "on"), PerformanceOptions("off", "off")
 
 
-def _forward_and_gradient(options):
-  """A U-Net with 128 channels (Winograd taken) on a short sequence: its output and the
-  gradient of a non-linear read-out over all parameters, in one jitted call."""
+def _wide_unet(channel_mult: tuple[int, ...]):
+  """(graphdef, params) of a U-Net of 128 channels (Winograd taken) on sequences of 6 steps,
+  its zero-initialised output convolutions made non-zero so that every gradient flows."""
   config = UNetConfig(
       num_tokens=4,
       base_channels=128,
-      channel_mult=(1,),
+      channel_mult=channel_mult,
       attention_levels=(),
       num_heads=1,
       length=6,
       padded_length=8,
   )
   graphdef, params = unet1d.init_unet(config, jax.random.key(0))
-  # the zero-initialised output convolutions made non-zero, so every gradient flows
   params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape), params)
+  return graphdef, params
+
+
+def _forward_and_gradient(options):
+  """A U-Net with 128 channels (Winograd taken) on a short sequence: its output and the
+  gradient of a non-linear read-out over all parameters, in one jitted call."""
+  graphdef, params = _wide_unet(channel_mult=(1,))
   keys = jax.random.split(jax.random.key(2), 2)
   x, weight = jax.random.normal(keys[0], (2, 6, 2)), jax.random.normal(keys[1], (2, 6, 2))
   forward = lambda p: unet1d.apply_unet(graphdef, p, x, jnp.array([3, 500]), jnp.array([0, 4]))
@@ -120,18 +126,7 @@ def test_use_sets_the_options_for_a_block_and_retraces_jitted_functions():
 
 def _two_level_unet():
   """128 channels on two levels: residual blocks and an upsampling that take Winograd."""
-  config = UNetConfig(
-      num_tokens=4,
-      base_channels=128,
-      channel_mult=(1, 1),
-      attention_levels=(),
-      num_heads=1,
-      length=6,
-      padded_length=8,
-  )
-  graphdef, params = unet1d.init_unet(config, jax.random.key(0))
-  params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape), params)
-  return graphdef, params
+  return _wide_unet(channel_mult=(1, 1))
 
 
 def _transformed(params) -> int:
