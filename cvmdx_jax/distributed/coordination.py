@@ -28,7 +28,7 @@ import time
 from cvmdx_jax.errors import UserError
 
 GRACE_S = 30.0  # > PeerWatch's 10 s silence and the coordinator's 20 s heartbeat timeout
-_START_S = 120.0  # the child's import of jaxlib and start of the service on a loaded host
+_SHUTDOWN_S = 60.0  # the wait for the service's own shutdown, then it is killed
 _DONE = b"done"
 
 
@@ -59,14 +59,19 @@ class ServiceHost:
 
   def shutdown(self) -> None:
     """Ends the service now (every process is past JAX's shutdown barrier)."""
-    if self._child.poll() is None:
-      try:
-        self._child.stdin.write(_DONE)
-        self._child.stdin.close()
-      except BrokenPipeError:
-        pass
-      self._child.wait(timeout=_START_S)
-    self._child.stdout.close()
+    child = self._child
+    try:
+      if child.poll() is None:
+        child.stdin.write(_DONE)
+      child.stdin.close()
+    except BrokenPipeError:
+      pass  # it had ended
+    try:
+      child.wait(timeout=_SHUTDOWN_S)
+    except subprocess.TimeoutExpired:
+      child.kill()
+      child.wait()
+    child.stdout.close()
 
 
 def start(address: str, num_nodes: int, **options) -> ServiceHost:
