@@ -9,18 +9,24 @@ the demo's 0) and of the held-out road (`--ood_recordings` of 100 s): >= 1,000 s
 class on each. Then, per trained run (a `make demo` directory with data/, tokenizer/, the
 `--denoiser` run, baseline/ and, where present, mdn/), scores every model
 (`evaluation.predictive`) with the same proper scores (`evaluation.model_scores`):
-settings (kernel bandwidths) chosen and regions calibrated on the run's own val split,
+settings (kernel rules: `evaluation.regions`) chosen on the run's own val split,
 scored on the new test and test_ood sets and on the run's val_ood. Writes
 `<workdir>/quality.md` (tables with vehicle-bootstrap intervals),
 `quality.json`, `scores_<run>_<split>.npz` (every model's per-scenario scores, written as
 each run is scored; `--reuse` takes them instead of scoring that run again),
-`bandwidths_<run>.json` and `region_reliability_<split>.png`.
+`bandwidths_<run>.json` and `region_reliability_<split>.png`. Regions are calibrated on new
+validation recordings (`--val_recordings` of the val ranges and `--val_ood_recordings` of
+the val_ood road, SUMO seed `--cal_sumo_seed`, cached in `<workdir>/cal_data`, class-balanced
+subsets of `--max_calibration` each), pooled; densities are chosen on the run's own val.
+cVMDx's predictions are cached in `<workdir>/predictions/<run>_<key>.npz`, the key a hash of
+the scenarios' inputs and the seed: a later call (another density, more runs) reuses them.
 """
 
 from cvmdx_jax import cli  # first: a signal during the imports below is one line
 
 # isort: split
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -34,7 +40,9 @@ from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import figures, learned_baseline, quality, quality_tables, regions
 from cvmdx_jax.inference import mdn_baseline
 from cvmdx_jax.inference.bundles import load_baseline
-from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
+from cvmdx_jax.inference.sampling import Prediction
+from cvmdx_jax.multimodal import Hypotheses
 from cvmdx_jax.storage import atomic, checksums
 
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (dataset cached inside).")
@@ -57,6 +65,18 @@ _SUMO_SEED = flags.DEFINE_integer(
 _MAX = flags.DEFINE_integer(
     "max_scenarios", 0, "Class-balanced subset per split (0 = all).", lower_bound=0
 )
+_CAL_SEED = flags.DEFINE_integer(
+    "cal_sumo_seed", 102, "SUMO seed of the new calibration recordings.", lower_bound=1
+)
+_VAL = flags.DEFINE_integer(
+    "val_recordings", 4, "New val-range calibration recordings of 240 s.", lower_bound=1
+)
+_VAL_OOD = flags.DEFINE_integer(
+    "val_ood_recordings", 2, "New val_ood-road calibration recordings.", lower_bound=1
+)
+_MAX_CAL = flags.DEFINE_integer(
+    "max_calibration", 600, "Class-balanced subset of each calibration split.", lower_bound=3
+)
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling, Monte Carlo and bootstrap seed.", lower_bound=0)
 _REUSE = flags.DEFINE_bool(
     "reuse",
@@ -71,24 +91,65 @@ cli.output_dirs("workdir")
 SCORED = ("test", "test_ood", "val_ood")
 
 
-def _large_test_sets(data_dir: Path) -> dict:
+def _new_recordings(data_dir: Path, seed: int, counts: dict) -> dict:
+  """Builds (once) new SUMO recordings of the default config: {split: count}."""
   config = dataset_config.get_config()
-  config.sumo.seed = _SUMO_SEED.value
+  config.sumo.seed = seed
   config.sumo.duration_s = _DURATION.value
   config.sumo.recordings.update(
-      {"train": 0, "val": 0, "val_ood": 0, "test": _TEST.value, "test_ood": _OOD.value}
+      {"train": 0, "val": 0, "val_ood": 0, "test": 0, "test_ood": 0, **counts}
   )
   return dataset.build(config, data_dir)
 
 
-def _subset(scenarios):
-  if not _MAX.value or len(scenarios) <= _MAX.value:
+def _subset(scenarios, size: int):
+  if not size or len(scenarios) <= size:
     return scenarios
-  return scenarios.take(balanced_indices(scenarios.label, _SEED.value, _MAX.value))
+  return scenarios.take(balanced_indices(scenarios.label, _SEED.value, size))
 
 
-def _score_run(run: Path, large: dict, log):
+def _cached(predictor, cache_dir: Path, run_name: str):
+  """`predictor` whose outputs are kept in cache_dir, keyed by the inputs and the seed
+  (controls are not kept: None)."""
+
+  def predict(scenarios, seed):
+    digest = hashlib.sha256(np.asarray(scenarios.xi, np.float32).tobytes())
+    digest.update(np.asarray(scenarios.mask, bool).tobytes() + str(seed).encode())
+    path = cache_dir / f"{run_name}_{digest.hexdigest()[:16]}.npz"
+    if not path.is_file():
+      out = predictor(scenarios, seed=seed)
+      hyp = out.hypotheses
+      fields = {
+          "trajectories": out.prediction.trajectories,
+          "hyp_means": hyp.means,
+          "hyp_probs": hyp.probs,
+          "hyp_labels": hyp.labels,
+          "q": out.q,
+          "delta": out.delta,
+      }
+      arrays = {k: np.asarray(v) for k, v in fields.items()}
+      cache_dir.mkdir(exist_ok=True)
+      checksums.write_all({path: checksums.npz_bytes(**arrays)})
+    with np.load(path) as z:
+      probs, traj = z["hyp_probs"], z["trajectories"]
+      num = np.sum(probs > 0, axis=1)
+      hyp = Hypotheses(
+          num, num, z["hyp_labels"], z["hyp_means"], probs, np.full(probs.shape, np.nan)
+      )
+      delta = z["delta"]
+      return PredictorOutput(
+          Prediction(None, traj, traj.mean(axis=1), hyp),
+          z["q"],
+          delta,
+          ~(delta <= predictor.delta_limit),
+      )
+
+  return predict
+
+
+def _score_run(run: Path, large: dict, calibration, workdir: Path, log):
   predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
+  predict = _cached(predictor, workdir / "predictions", run.name)
   baseline = None
   if (run / "baseline").is_dir():
     baseline = load_baseline(run / "baseline")
@@ -99,12 +160,14 @@ def _score_run(run: Path, large: dict, log):
     learned_baseline.check_tokenizer(mdn, predictor.tokenizer, str(run / "mdn"))
     mdn_fn = lambda out, s: mdn(out.q, out.delta, s.xi, s.mask, s.v0, s.psi0)
   splits = {
-      "test": _subset(large["test"]),
-      "test_ood": _subset(large["test_ood"]),
-      "val_ood": _subset(dataset.load_split(run / "data", "val_ood")),
+      "test": _subset(large["test"], _MAX.value),
+      "test_ood": _subset(large["test_ood"], _MAX.value),
+      "val_ood": _subset(dataset.load_split(run / "data", "val_ood"), _MAX.value),
   }
-  val = _subset(dataset.load_split(run / "data", "val"))
-  return quality.evaluate_run(predictor, baseline, mdn_fn, val, splits, seed=_SEED.value, log=log)
+  val = _subset(dataset.load_split(run / "data", "val"), _MAX.value)
+  return quality.evaluate_run(
+      predict, baseline, mdn_fn, val, splits, calibration, seed=_SEED.value, log=log
+  )
 
 
 def _save_run(workdir: Path, name: str, scores: quality.RunScores) -> None:
@@ -186,7 +249,13 @@ def main(argv):
       if not (run / part).is_dir():
         raise app.UsageError(f"--runs: {run / part} is not a directory (a make demo run?)")
   start = time.time()
-  large = _large_test_sets(workdir / "data")
+  large = _new_recordings(
+      workdir / "data", _SUMO_SEED.value, {"test": _TEST.value, "test_ood": _OOD.value}
+  )
+  cal = _new_recordings(
+      workdir / "cal_data", _CAL_SEED.value, {"val": _VAL.value, "val_ood": _VAL_OOD.value}
+  )
+  calibration = [_subset(cal[k], _MAX_CAL.value) for k in ("val", "val_ood")]
   build_s = round(time.time() - start, 1)
   print(
       f"test sets: {', '.join(f'{k} {len(v)}' for k, v in large.items())} ({build_s} s)", flush=True
@@ -197,7 +266,9 @@ def main(argv):
     scored[run.name] = _load_run(workdir, run.name) if _REUSE.value else None
     if scored[run.name] is None:
       print(f"scoring {run}", flush=True)
-      scored[run.name] = _score_run(run, large, lambda m: print(m, flush=True))
+      scored[run.name] = _score_run(
+          run, large, calibration, workdir, lambda m: print(m, flush=True)
+      )
       _save_run(workdir, run.name, scored[run.name])
     seconds[run.name] = round(time.time() - start, 1)
   checksums.write_all(_files(workdir, scored, build_s, seconds))

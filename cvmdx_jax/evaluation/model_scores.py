@@ -10,7 +10,7 @@ best-of-K metrics. `scenario_scores` returns, per scenario (M,):
   `ES_SAMPLES` draws, fair);
 - `nll_<s>s` (nats) and `hdr_u_<s>s` (the mass of the smallest highest-density region
   holding the truth; inside the level-a region iff u <= a) at s = 1..5 (`regions`; kernel
-  bandwidths from `choose_bandwidths` on val), `area_<pct>_<s>s` (m^2) of the 50 / 90 /
+  kernel rules from `choose_bandwidths` on val), `area_<pct>_<s>s` (m^2) of the 50 / 90 /
   95 % regions;
 - `ade`, `fde`, `sq_err_<s>s` (m, m^2) of the mean trajectory (RMSE at s = the root of the
   mean of `sq_err_<s>s`);
@@ -41,8 +41,9 @@ class Model:
 
 
 def choose_bandwidths(model: Model, gt) -> tuple:
-  """Per horizon of `regions.HORIZON_STEPS` the (lon, lat) kernel bandwidth (m) chosen on
-  these scenarios (give val); None for a mixture (its own density)."""
+  """Per horizon of `regions.HORIZON_STEPS` the kernel rule (c, f_lon m, f_lat m) chosen on
+  these scenarios (give val; `regions.choose_bandwidth`); None for a mixture (its own
+  density)."""
   if isinstance(model.distribution, GaussianMixture):
     return None
   return tuple(

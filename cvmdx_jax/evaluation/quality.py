@@ -1,11 +1,12 @@
 """The quality benchmark of one trained demo: every model's proper scores on large test
-sets, with settings chosen on val and regions calibrated on val.
+sets, with settings chosen on val and regions calibrated on validation scenarios.
 
-`evaluate_run` predicts every model (`predictive`) on val (the run's own), then on each
-evaluated split; on val it chooses each model's kernel bandwidths (`model_scores`) and
-calibrates each model's region levels per horizon (`conformal`, plain and per delta
-tercile) and its p(c) threshold. It returns plain data (`RunScores`); `quality_tables`
-renders it.
+`evaluate_run` predicts every model (`predictive`) on val (the run's own), on the
+calibration scenarios, then on each evaluated split; on val it chooses each model's kernel
+rules (`model_scores`), on the calibration scenarios (validation scenarios not used for
+anything else; val itself where none are given) it calibrates each model's region levels
+per horizon (`conformal`, plain and per delta tercile) and its p(c) threshold. It returns
+plain data (`RunScores`); `quality_tables` renders it.
 """
 
 import dataclasses
@@ -23,7 +24,8 @@ class RunScores:
   """One trained run's scores.
 
   Attributes:
-    bandwidths: {model: per horizon (lon, lat) m or None}, chosen on val.
+    bandwidths: {model: per horizon the kernel rule (c, f_lon m, f_lat m) or None}, chosen
+      on val (`regions`).
     levels: {model: {"plain": (5,) calibrated levels per horizon, "delta": (3, 5) per delta
       tercile}} of `CALIBRATION_LEVEL`, and {"pc": threshold} for the K-set models.
     splits: {split: {"meta": {recording_id, track_id, label, delta} (M,),
@@ -110,8 +112,24 @@ def _score(model, bandwidths, levels, scenarios, delta, key) -> dict:
   return out
 
 
+def _pooled(models_by_set: list, deltas: list, sets: list):
+  """The calibration sets' models, deltas and scenarios concatenated per model."""
+  if len(sets) == 1:
+    return models_by_set[0], deltas[0], sets[0]
+  cat = lambda *a: np.concatenate([np.asarray(x) for x in a])
+  models = [
+      dataclasses.replace(
+          group[0],
+          distribution=jax.tree.map(cat, *[m.distribution for m in group]),
+          k_set=None if group[0].k_set is None else jax.tree.map(cat, *[m.k_set for m in group]),
+      )
+      for group in zip(*models_by_set)
+  ]
+  return models, cat(*deltas), jax.tree.map(cat, *sets)
+
+
 def evaluate_run(
-    predictor, baseline, mdn_fn, val, splits: dict, seed: int = 0, log=print
+    predictor, baseline, mdn_fn, val, splits: dict, calibration=(), seed: int = 0, log=print
 ) -> RunScores:
   """Scores one trained run.
 
@@ -119,8 +137,10 @@ def evaluate_run(
     predictor: `inference.predictor.Predictor` (tokeniser + denoiser).
     baseline: the WTA MLP (`LearnedBaseline`) or None.
     mdn_fn: (PredictorOutput, Scenarios) -> `GaussianMixture`, or None.
-    val: the run's val `Scenarios` (chooses bandwidths, calibrates levels).
+    val: the run's val `Scenarios` (chooses the kernel rules; calibrates the levels where
+      `calibration` is empty).
     splits: {name: Scenarios} to score.
+    calibration: `Scenarios` sets pooled to calibrate the levels.
     seed: sampling and Monte Carlo seed.
   """
   key = jax.random.key(seed)
@@ -129,10 +149,19 @@ def evaluate_run(
   bandwidths, levels = {}, {}
   for model in val_models:
     bandwidths[model.name] = model_scores.choose_bandwidths(model, val_gt)
-    levels[model.name] = _calibrate(
-        model, bandwidths[model.name], val, val_delta, jax.random.fold_in(key, 1)
+    log(f"  val: {model.name} kernel rules {bandwidths[model.name]}")
+  if calibration:
+    found = [_models(predictor, baseline, mdn_fn, s, seed) for s in calibration]
+    cal_models, cal_delta, cal = _pooled(
+        [f[0] for f in found], [f[1] for f in found], list(calibration)
     )
-    log(f"  val: {model.name} bandwidths {bandwidths[model.name]}")
+  else:
+    cal_models, cal_delta, cal = val_models, val_delta, val
+  for model in cal_models:
+    levels[model.name] = _calibrate(
+        model, bandwidths[model.name], cal, cal_delta, jax.random.fold_in(key, 1)
+    )
+    log(f"  calibration ({len(cal_delta)}): {model.name} levels {levels[model.name]['plain']}")
   scored = {}
   for name, scenarios in splits.items():
     models, delta = _models(predictor, baseline, mdn_fn, scenarios, seed)

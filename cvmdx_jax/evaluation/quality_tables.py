@@ -153,7 +153,7 @@ def difference_table(rows: list) -> str:
 
 
 def calibration_table(runs: dict, splits) -> str:
-  """Coverage of the 90 % regions at 1..5 s (raw, calibrated on val, per delta tercile) and
+  """Coverage of the 90 % regions at 1..5 s (raw, calibrated, per delta tercile) and
   their areas at 5 s, mean over seeds, per model and split."""
   h = regions.HORIZONS_S
   head = (
@@ -188,7 +188,7 @@ def calibration_table(runs: dict, splits) -> str:
 
 def hypothesis_set_table(runs: dict, splits) -> str:
   """p(c) sets: coverage of the closest hypothesis and mean set size, raw 0.9 threshold
-  and calibrated on val, mean over seeds."""
+  and calibrated, mean over seeds."""
   lines = [
       "| model | split | raw cover | raw size | calibrated cover | calibrated size |",
       "|---|---|---|---|---|---|",

@@ -4,10 +4,14 @@ Every model's prediction at a horizon becomes a 2-D mixture of axis-aligned Gaus
 (`HorizonMixture`, per scenario K components):
 - a `GaussianMixture` (the MDN): its own components at that step (exact density);
 - `WeightedSamples` (cVMDx's samples, its hypotheses, the WTA heads, a point mass): a
-  Gaussian kernel on each point with its weight and one bandwidth per axis (lon, lat), the
-  same for every scenario, chosen per model and horizon on val by the smallest mean NLL
-  over `BANDWIDTH_GRID_M` (`choose_bandwidth`). For a point mass this is a Gaussian
-  around it whose spread is fitted on val.
+  Gaussian kernel on each point with its weight and, per scenario m and axis a (lon, lat),
+  the bandwidth h_{m,a} = sqrt((c sd_{m,a})^2 + f_a^2), sd_{m,a} the weighted standard
+  deviation of the scenario's points at that horizon (`spread`): a kernel that grows with
+  the model's own spread (c, Silverman-like) above a floor f. The rule (c, f_lon, f_lat)
+  is chosen per model and horizon on val by the smallest mean NLL over `SCALE_GRID` x
+  `BANDWIDTH_GRID_M`^2 (`choose_bandwidth`); c = 0 is one fixed bandwidth for every
+  scenario (the density used before 2026-12-06 evening). For a point mass (sd = 0) this is
+  a Gaussian around it whose spread is fitted on val.
 
 `nll` is -log p(y) in nats (density per m^2). The highest-density region (HDR) of level
 a is {z : p(z) >= t_a} with mass a; `hdr` draws `HDR_DRAWS` positions z from p and
@@ -30,7 +34,8 @@ from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 HORIZONS_S = (1, 2, 3, 4, 5)
 HORIZON_STEPS = tuple(round(s / constants.DT) - 1 for s in HORIZONS_S)  # future index at s
 LEVELS = (0.5, 0.9, 0.95)  # nominal masses of the reported regions
-BANDWIDTH_GRID_M = tuple(float(h) for h in np.geomspace(0.05, 30.0, 28))
+BANDWIDTH_GRID_M = tuple(float(h) for h in np.geomspace(0.01, 30.0, 36))  # floors f
+SCALE_GRID = (0.0,) + tuple(float(c) for c in np.geomspace(0.1, 3.0, 15))  # factors c
 HDR_DRAWS = 256  # Monte Carlo draws per scenario and horizon for u and the areas
 _CHUNK = 256  # scenarios per vectorised block (bounds memory at M x N x G x G)
 
@@ -45,13 +50,29 @@ class HorizonMixture:
   weights: jax.Array
 
 
+def spread(points, weights):
+  """Weighted standard deviation per axis of each scenario's points: (M, N, 2), (M, N) ->
+  (M, 2) m (0 for a point mass)."""
+  w = weights / jnp.sum(weights, axis=1, keepdims=True)
+  mean = jnp.einsum("mn,mna->ma", w, points)
+  return jnp.sqrt(jnp.einsum("mn,mna->ma", w, (points - mean[:, None]) ** 2))
+
+
+def kernel_widths(sd, rule):
+  """Kernel bandwidths sqrt((c sd)^2 + f^2) (m) of rule (c, f_lon, f_lat); sd (..., 2)."""
+  c, floor = rule[0], jnp.asarray(rule[1:], sd.dtype)
+  return jnp.sqrt((c * sd) ** 2 + floor**2)
+
+
 def at_horizon(dist, step: int, bandwidth=None) -> HorizonMixture:
-  """The density of `dist` at future index `step`; bandwidth (2,) m for `WeightedSamples`."""
+  """The density of `dist` at future index `step`; bandwidth: the kernel rule (c, f_lon,
+  f_lat) (module docstring) for `WeightedSamples`, None for a `GaussianMixture`."""
   if isinstance(dist, GaussianMixture):
     return HorizonMixture(dist.means[:, :, step], dist.stds[:, :, step], dist.weights)
-  points = jnp.asarray(dist.points)[:, :, step]
-  stds = jnp.broadcast_to(jnp.asarray(bandwidth, points.dtype), points.shape)
-  return HorizonMixture(points, stds, jnp.asarray(dist.weights))
+  points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
+  weights = jnp.asarray(dist.weights, jnp.float32)
+  widths = kernel_widths(spread(points, weights), tuple(float(v) for v in bandwidth))
+  return HorizonMixture(points, jnp.broadcast_to(widths[:, None], points.shape), weights)
 
 
 def _component_log_pdf(mix: HorizonMixture, z):
@@ -74,12 +95,13 @@ def nll(mix: HorizonMixture, y):
 
 
 @jax.jit
-def _grid_nll(points, weights, y, valid, grid):
-  """Sum over the valid scenarios of -log p(y) for every (h_lon, h_lat) of grid (G,)
-  -> (G, G)."""
+def _grid_nll(points, weights, y, valid, scale, grid):
+  """Sum over the valid scenarios of -log p(y) with kernel widths sqrt((scale sd)^2 + f^2)
+  for every floor pair (f_lon, f_lat) of grid (G,) -> (G, G)."""
   dev = y[:, None] - points  # (M, N, 2)
+  widths = jnp.sqrt((scale * spread(points, weights))[:, None, :, None] ** 2 + grid**2)
   per_axis = (
-      -0.5 * (dev[..., None] / grid) ** 2 - jnp.log(grid) - 0.5 * math.log(2.0 * math.pi)
+      -0.5 * (dev[..., None] / widths) ** 2 - jnp.log(widths) - 0.5 * math.log(2.0 * math.pi)
   )  # (M, N, 2, G)
   joint = per_axis[:, :, 0, :, None] + per_axis[:, :, 1, None, :]  # (M, N, G, G)
   log_w = jnp.log(jnp.maximum(weights, 1e-30))[..., None, None]
@@ -88,26 +110,28 @@ def _grid_nll(points, weights, y, valid, grid):
 
 
 def choose_bandwidth(
-    dist: WeightedSamples, gt, step: int, grid=BANDWIDTH_GRID_M
-) -> tuple[float, float]:
-  """The (lon, lat) kernel bandwidth (m) of `grid` with the smallest mean NLL of gt[:, step]
-  (call it on val)."""
-  points = np.asarray(dist.points)[:, :, step]
-  weights, y = np.asarray(dist.weights), np.asarray(gt)[:, step]
+    dist: WeightedSamples, gt, step: int, grid=BANDWIDTH_GRID_M, scales=SCALE_GRID
+) -> tuple[float, float, float]:
+  """The kernel rule (c, f_lon, f_lat) of `scales` x `grid`^2 with the smallest mean NLL of
+  gt[:, step] (call it on val; ties go to the smaller c)."""
+  points = np.asarray(dist.points, np.float32)[:, :, step]
+  weights, y = np.asarray(dist.weights, np.float32), np.asarray(gt, np.float32)[:, step]
   grid = jnp.asarray(grid, jnp.float32)
   size = min(_CHUNK, len(y))
-  total = sum(
-      _grid_nll(
+  blocks = [
+      (
           _pad(points[i:j], size),
           _pad(weights[i:j], size),
           _pad(y[i:j], size),
           jnp.arange(size) < j - i,
-          grid,
       )
       for i, j in _blocks(len(y))
-  )
-  lon, lat = np.unravel_index(int(np.argmin(np.asarray(total))), total.shape)
-  return float(grid[lon]), float(grid[lat])
+  ]
+  totals = np.stack(
+      [np.asarray(sum(_grid_nll(*block, jnp.float32(c), grid) for block in blocks)) for c in scales]
+  )  # (C, G, G)
+  c, lon, lat = np.unravel_index(int(np.argmin(totals)), totals.shape)
+  return tuple(round(float(v), 4) for v in (scales[c], grid[lon], grid[lat]))
 
 
 def _draw(key, mix: HorizonMixture, n: int):

@@ -69,16 +69,20 @@ def _fake_predictor(shape):
 def test_true_distribution_wins_and_calibrated_regions_cover():
   val, shape = _world(300, 0)
   test, _ = _world(300, 1)
+  calibration = (_world(300, 2)[0], _world(300, 3)[0])  # pooled: 600 scenarios
+  lines = []
   runs = {
       "r0": quality.evaluate_run(
-          _fake_predictor(shape), None, None, val, {"test": test}, log=lambda _: None
+          _fake_predictor(shape), None, None, val, {"test": test}, calibration, log=lines.append
       )
   }
+  assert any(line.startswith("  calibration (600): cvmdx_samples") for line in lines)
   table = quality_tables.summary(runs, "test")
   assert table["cvmdx_samples"]["energy_score"] < table["cv"]["energy_score"]
   assert table["cvmdx_samples"]["nll_5s"] < table["cv"]["nll_5s"]
   row = runs["r0"].splits["test"]["cvmdx_samples"]
-  assert abs(np.mean(row["cal_cover_5s"]) - 0.9) < 0.06
+  for s in (1, 3, 5):
+    assert abs(np.mean(row[f"cal_cover_{s}s"]) - 0.9) < 0.06
   diffs = {
       (d["a"], d["b"], d["metric"], d["subset"]): d
       for d in quality_tables.differences(runs, "test")
