@@ -1,2 +1,3 @@
-"""Several processes of one run: `coordination` hosts `jax.distributed`'s coordination
-service apart from process 0 (`cvmdx_jax.sharding` joins the run)."""
+"""Several processes of one run: `launch` joins the run (`initialize_distributed`, re-exported
+by `cvmdx_jax.sharding`), `coordination` hosts `jax.distributed`'s coordination service apart
+from process 0."""

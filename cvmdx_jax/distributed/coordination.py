@@ -2,7 +2,7 @@
 
 JAX runs the service (key-value store, barriers, heartbeats) inside process 0. When process 0
 dies, every other process's client loses it and JAX aborts that process within a second,
-with a multi-line log. `sharding.initialize_distributed` makes process 0 start the service
+with a multi-line log. `distributed.launch.initialize_distributed` makes process 0 start the service
 through `start` instead: a child process (`python -m cvmdx_jax.distributed.coordination`,
 jaxlib only) that serves until process 0 shuts it down, or outlives a dead process 0 by `GRACE_S`
 seconds: long enough for the other processes to find process 0 silent
