@@ -5,27 +5,66 @@ import json
 import re
 import shutil
 
+import jax
 import pytest
 
+from cvmdx_jax.config.runs import DiffusionRunConfig
 from cvmdx_jax.evaluation import report, report_models
-from cvmdx_jax.runs import tokens
-from tests import fixtures_runs
+from cvmdx_jax.models import unet1d
+from cvmdx_jax.runs import layout, loaders, tokens
+from cvmdx_jax.storage import checkpointing
 
 pytestmark = pytest.mark.filterwarnings(  # the tiny runs put a few scenarios out of range
     "ignore::cvmdx_jax.inference.predictor.OutOfDistributionWarning"
 )
 
 
-def test_metrics_record_the_checkpoints_and_an_older_one_shows(tiny_runs, tmp_path):
+def _add_a_later_step(run_dir, step: int) -> None:
+  """Saves checkpoint `step` of a diffusion run: its EMA parameters (all the loader reads)
+  scaled by 1.01, with the run's fingerprint (a training epoch, without the training)."""
+  config = loaders.read_run_config(run_dir, DiffusionRunConfig, "diffusion")
+  abstract = {"ema_params": loaders.abstract_params(unet1d.init_unet, config.model)}
+  tree, fingerprint = loaders.restore_latest(run_dir, abstract)
+  later = {"ema_params": jax.tree.map(lambda x: x * 1.01, tree["ema_params"])}
+  with checkpointing.Checkpoints(run_dir / layout.CHECKPOINTS) as ckpts:
+    ckpts.save(step, later, {"fingerprint": fingerprint})
+
+
+@pytest.fixture
+def two_steps(tiny_runs, tmp_path):
+  """A copy of the tiny diffusion run with checkpoints 1 and 2."""
   diffusion_dir = tmp_path / "diffusion"
-  config = fixtures_runs.diffusion_config_for(tiny_runs / "data", tiny_runs / "tokenizer")
-  config.train.num_epochs = 2  # checkpoints 1 and 2: an older step to fall back to
-  fixtures_runs.train_diffusion(config, diffusion_dir)
-  steps = sorted(int(p.name) for p in (diffusion_dir / "checkpoints").iterdir())
-  assert steps == [1, 2]
+  shutil.copytree(tiny_runs / "diffusion", diffusion_dir)
+  _add_a_later_step(diffusion_dir, 2)
+  assert sorted(int(p.name) for p in (diffusion_dir / "checkpoints").iterdir()) == [1, 2]
+  return diffusion_dir
+
+
+def test_the_loaded_checkpoints_are_named_and_an_older_one_shows(tiny_runs, two_steps):
+  tokenizer_dir = tiny_runs / "tokenizer"
+  latest = report_models.load(tokenizer_dir=tokenizer_dir, diffusion_dir=two_steps)
+  tok, den = latest.checkpoints["tokenizer"], latest.checkpoints["diffusion"]
+  assert set(latest.checkpoints) == {"tokenizer", "diffusion"}
+  assert den["dir"] == str(two_steps) and den["checkpoint"] == 2
+  assert re.fullmatch("[0-9a-f]{64}", den["params_id"])
+  assert tok["dir"] == str(tokenizer_dir)
+  assert tok["checkpoint"] == max(int(p.name) for p in (tokenizer_dir / "checkpoints").iterdir())
+  # the id the tokeniser's training wrote beside its Gaussians for the same parameters
+  _, gmeta = tokens.load_gaussians(tokens.gaussians_path(tokenizer_dir))
+  assert tok["params_id"] == gmeta["checkpoint"]["params_id"]
+
+  shutil.rmtree(two_steps / "checkpoints" / "2")  # the latest step is lost
+  older = report_models.load(tokenizer_dir=tokenizer_dir, diffusion_dir=two_steps)
+  assert older.checkpoints["diffusion"]["checkpoint"] == 1
+  assert older.checkpoints["diffusion"]["params_id"] != den["params_id"]
+  assert older.checkpoints["tokenizer"] == tok
+
+
+@pytest.mark.slow  # an evaluation: ~30 s on the shared 2-core machine
+def test_metrics_json_records_them(tiny_runs, two_steps, tmp_path):
   report.run(
       tokenizer_dir=tiny_runs / "tokenizer",
-      diffusion_dir=diffusion_dir,
+      diffusion_dir=two_steps,
       data_dir=tiny_runs / "data",
       workdir=tmp_path / "eval",
       max_scenarios=6,
@@ -33,20 +72,6 @@ def test_metrics_record_the_checkpoints_and_an_older_one_shows(tiny_runs, tmp_pa
       figures_per_class=0,
   )
   meta = json.loads((tmp_path / "eval" / "metrics.json").read_text())["_meta"]
-  tok, den = meta["checkpoints"]["tokenizer"], meta["checkpoints"]["diffusion"]
-  assert set(meta["checkpoints"]) == {"tokenizer", "diffusion"}
-  assert den["dir"] == str(diffusion_dir) and den["checkpoint"] == steps[-1]
-  assert tok["dir"] == str(tiny_runs / "tokenizer")
-  assert tok["checkpoint"] == max(
-      int(p.name) for p in (tiny_runs / "tokenizer" / "checkpoints").iterdir()
-  )
-  # the id the tokeniser's training wrote beside its Gaussians for the same parameters
-  _, gmeta = tokens.load_gaussians(tokens.gaussians_path(tiny_runs / "tokenizer"))
-  assert tok["params_id"] == gmeta["checkpoint"]["params_id"]
-  assert re.fullmatch("[0-9a-f]{64}", den["params_id"])
-
-  shutil.rmtree(diffusion_dir / "checkpoints" / str(steps[-1]))  # the latest step is lost
-  older = report_models.load(tokenizer_dir=tiny_runs / "tokenizer", diffusion_dir=diffusion_dir)
-  assert older.checkpoints["diffusion"]["checkpoint"] == steps[-2]
-  assert older.checkpoints["diffusion"]["params_id"] != den["params_id"]
-  assert older.checkpoints["tokenizer"] == tok
+  loaded = report_models.load(tokenizer_dir=tiny_runs / "tokenizer", diffusion_dir=two_steps)
+  assert meta["checkpoints"] == loaded.checkpoints
+  assert meta["checkpoints"]["diffusion"]["checkpoint"] == 2
