@@ -37,7 +37,7 @@ from cvmdx_jax.models import multiple_choice as mc
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import locking
-from cvmdx_jax.train import loop
+from cvmdx_jax.train import loop, optimizers
 
 INPUTS = ("q", "delta", "ego", "v0", "psi0")  # what a forward pass reads
 _EPS_M2 = 1e-6  # m^2 under the square root of a displacement (its gradient at 0)
@@ -107,17 +107,7 @@ def point_readouts(trajectories, logits, gt) -> dict:
 def optimizer(t: BaselineTrainConfig, total_steps: int):
   """AdamW with linear warm-up, cosine decay to `t.end_lr_fraction` of the peak and
   global-norm clipping."""
-  warmup = min(t.warmup_steps, max(total_steps // 10, 1))
-  lr = optax.warmup_cosine_decay_schedule(
-      init_value=t.learning_rate * 0.01,
-      peak_value=t.learning_rate,
-      warmup_steps=warmup,
-      decay_steps=max(total_steps, warmup + 1),
-      end_value=t.learning_rate * t.end_lr_fraction,
-  )
-  return optax.chain(
-      optax.clip_by_global_norm(t.grad_clip), optax.adamw(lr, weight_decay=t.weight_decay)
-  )
+  return optimizers.adamw(t, total_steps, t.learning_rate * t.end_lr_fraction)
 
 
 def make_init_fn(model_cfg, tx, val_metrics, init=mc.init):

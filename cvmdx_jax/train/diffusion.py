@@ -30,22 +30,12 @@ from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints, layout
 from cvmdx_jax.runs import tokens as tokens_lib
 from cvmdx_jax.storage import locking
-from cvmdx_jax.train import loop
+from cvmdx_jax.train import loop, optimizers
 
 
 def optimizer(t: DiffusionTrainConfig, total_steps: int):
   """AdamW with linear warm-up, cosine decay to `t.min_lr` and global-norm clipping."""
-  warmup = min(t.warmup_steps, max(total_steps // 10, 1))
-  lr = optax.warmup_cosine_decay_schedule(
-      init_value=t.learning_rate * 0.01,
-      peak_value=t.learning_rate,
-      warmup_steps=warmup,
-      decay_steps=max(total_steps, warmup + 1),
-      end_value=t.min_lr,
-  )
-  return optax.chain(
-      optax.clip_by_global_norm(t.grad_clip), optax.adamw(lr, weight_decay=t.weight_decay)
-  )
+  return optimizers.adamw(t, total_steps, t.min_lr)
 
 
 def make_init_fn(cfg: UNetConfig, tx):

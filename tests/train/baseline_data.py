@@ -95,3 +95,9 @@ def assert_resumes_bit_identically(trained: Path, workdir: Path, train_again, pa
   assert curve(workdir) == [
       {**r, "seconds": s["seconds"]} for r, s in zip(curve(trained), curve(workdir))
   ]
+
+
+def assert_every_leaf_differs(params, other) -> None:
+  """Every parameter array of `params` differs from `other`'s somewhere (another seed)."""
+  differs = jax.tree.map(lambda a, b: bool(np.any(a != b)), params, other)
+  assert all(jax.tree.leaves(differs))

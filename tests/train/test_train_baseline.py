@@ -74,10 +74,7 @@ def test_the_seed_fixes_the_result(dirs, trained):
   other = _config(dirs)
   other.seed = 1
   _train(other, dirs / "seed1")
-  differs = jax.tree.map(
-      lambda a, b: bool(np.any(a != b)), _params(trained), _params(dirs / "seed1")
-  )
-  assert all(jax.tree.leaves(differs))
+  baseline_data.assert_every_leaf_differs(_params(trained), _params(dirs / "seed1"))
 
 
 def test_another_setting_in_the_same_workdir_is_refused(dirs):

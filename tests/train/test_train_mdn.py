@@ -88,10 +88,7 @@ def test_another_seed_gives_other_parameters(dirs, trained):
   other = _config(dirs, num_epochs=2)
   other.seed = 1
   _train(other, dirs / "seed1")
-  differs = jax.tree.map(
-      lambda a, b: bool(np.any(a != b)), _params(trained), _params(dirs / "seed1")
-  )
-  assert all(jax.tree.leaves(differs))
+  baseline_data.assert_every_leaf_differs(_params(trained), _params(dirs / "seed1"))
 
 
 def test_a_multiple_choice_loader_refuses_the_run(trained):
