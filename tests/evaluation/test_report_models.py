@@ -6,6 +6,7 @@ import re
 import shutil
 
 import jax
+import numpy as np
 import pytest
 
 from cvmdx_jax.config.runs import DiffusionRunConfig
@@ -75,3 +76,17 @@ def test_metrics_json_records_them(tiny_runs, two_steps, tmp_path):
   loaded = report_models.load(tokenizer_dir=tiny_runs / "tokenizer", diffusion_dir=two_steps)
   assert meta["checkpoints"] == loaded.checkpoints
   assert meta["checkpoints"]["diffusion"]["checkpoint"] == 2
+
+
+def test_the_train_tokens_are_read_once(tiny_runs, monkeypatch):
+  """`Predictor.load` reads tokens/train.npz and keeps it; the report's token usage is
+  counted from what it kept, not from a second read."""
+  calls, load = [], tokens.load_tokens
+  monkeypatch.setattr(tokens, "load_tokens", lambda path: calls.append(path) or load(path))
+  models = report_models.load(
+      tokenizer_dir=tiny_runs / "tokenizer", diffusion_dir=tiny_runs / "diffusion"
+  )
+  assert calls == [tokens.tokens_path(tiny_runs / "tokenizer", "train")]
+  train, _ = load(calls[0])
+  assert models.usage.tolist() == np.bincount(train.q, minlength=len(models.usage)).tolist()
+  assert models.usage.sum() == len(train.q)
