@@ -47,6 +47,50 @@ def lane_of(y):
   return 1 + np.searchsorted(np.array(UPPER + LOWER), y)
 
 
+def _tracks_meta_row(vid: int, frames, x, y, direction: int) -> dict:
+  """The tracksMeta row of vehicle `vid` on `frames` at centres (x, y)."""
+  vx = np.gradient(x, DT)
+  return {
+      "id": vid,
+      "width": 4.0,
+      "height": 2.0,
+      "initialFrame": frames[0],
+      "finalFrame": frames[-1],
+      "numFrames": len(frames),
+      "class": "Car",
+      "drivingDirection": direction,
+      "traveledDistance": abs(x[-1] - x[0]),
+      "minXVelocity": np.abs(vx).min(),
+      "maxXVelocity": np.abs(vx).max(),
+      "meanXVelocity": np.abs(vx).mean(),
+      "minDHW": -1,
+      "minTHW": -1,
+      "minTTC": -1,
+      "numLaneChanges": int(np.count_nonzero(np.diff(lane_of(y)))),
+  }
+
+
+def _recording_meta_row(recording_id: int) -> dict:
+  """The recordingMeta row: 25 Hz, the lane markings `UPPER` and `LOWER`."""
+  return {
+      "id": recording_id,
+      "frameRate": 25,
+      "locationId": 1,
+      "speedLimit": -1,
+      "month": "09.2017",
+      "weekDay": "Tue",
+      "startTime": "08:38",
+      "duration": 12.0,
+      "totalDrivenDistance": 0.0,
+      "totalDrivenTime": 0.0,
+      "numVehicles": 5,
+      "numCars": 5,
+      "numTrucks": 0,
+      "upperLaneMarkings": ";".join(map(str, UPPER)),
+      "lowerLaneMarkings": ";".join(map(str, LOWER)),
+  }
+
+
 def write_recording(directory: Path, recording_id: int = 1, vehicles=(1, 2, 3, 4, 5)) -> None:
   """Writes the recording described in the module docstring (only `vehicles`)."""
   rows, meta = [], []
@@ -86,51 +130,12 @@ def write_recording(directory: Path, recording_id: int = 1, vehicles=(1, 2, 3, 4
       other = neighbours.get(vid, {}).get(column, 0)
       table[column] = other if other in vehicles else 0
     rows.append(pd.DataFrame(table))
-    meta.append(
-        {
-            "id": vid,
-            "width": 4.0,
-            "height": 2.0,
-            "initialFrame": frames[0],
-            "finalFrame": frames[-1],
-            "numFrames": len(frames),
-            "class": "Car",
-            "drivingDirection": direction,
-            "traveledDistance": abs(x[-1] - x[0]),
-            "minXVelocity": np.abs(vx).min(),
-            "maxXVelocity": np.abs(vx).max(),
-            "meanXVelocity": np.abs(vx).mean(),
-            "minDHW": -1,
-            "minTHW": -1,
-            "minTTC": -1,
-            "numLaneChanges": int(np.count_nonzero(np.diff(lane_of(y)))),
-        }
-    )
+    meta.append(_tracks_meta_row(vid, frames, x, y, direction))
   paths = highd.recording_paths(directory, recording_id)
   tracks = pd.concat(rows)[list(highd.TRACKS_COLUMNS)]
   tracks.to_csv(paths["tracks"], index=False, float_format="%.2f")
   pd.DataFrame(meta).to_csv(paths["tracksMeta"], index=False, float_format="%.2f")
-  pd.DataFrame(
-      [
-          {
-              "id": recording_id,
-              "frameRate": 25,
-              "locationId": 1,
-              "speedLimit": -1,
-              "month": "09.2017",
-              "weekDay": "Tue",
-              "startTime": "08:38",
-              "duration": 12.0,
-              "totalDrivenDistance": 0.0,
-              "totalDrivenTime": 0.0,
-              "numVehicles": 5,
-              "numCars": 5,
-              "numTrucks": 0,
-              "upperLaneMarkings": ";".join(map(str, UPPER)),
-              "lowerLaneMarkings": ";".join(map(str, LOWER)),
-          }
-      ]
-  ).to_csv(paths["recordingMeta"], index=False)
+  pd.DataFrame([_recording_meta_row(recording_id)]).to_csv(paths["recordingMeta"], index=False)
 
 
 @pytest.fixture

@@ -132,7 +132,15 @@ def _cut_must_fail(kind: str, partial_line: str) -> bool:
   return LAST_READ[kind] > field or (LAST_READ[kind] == field and not partial_line.split(",")[-1])
 
 
-def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
+FILE_CASES = ("missing", "empty", "header_only", "drop_header", "bom_crlf", "cut_file", "bytes")
+COLUMN_CASES = ("drop_column", "permute", "rename_column")
+CELL_CASES = ("nan", "text", "absurd")
+LINE_CASES = ("truncate_line", "duplicate", "delete", "swap")
+
+
+def make_case(rng, clean) -> Case:
+  """One variant of the clean recording's files `clean` (a corruption, or a harmless change),
+  drawn with `rng`, with what reading it must give."""
   what = _pick(
       rng,
       [
@@ -159,67 +167,33 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
       ],
   )
   kind = _pick(rng, tuple(COLUMNS))
+  for cases, make in (
+      (FILE_CASES, _file_case),
+      (COLUMN_CASES, _column_case),
+      (CELL_CASES, _cell_value_case),
+      (LINE_CASES, _line_case),
+  ):
+    if what in cases:
+      return make(rng, clean, what, kind)
+  return _id_case(rng, clean, what)
+
+
+def _file_case(rng, clean, what: str, kind: str) -> Case:
+  """File `kind` missing, empty, without rows or header, with a BOM and CRLF, cut, or with
+  one byte replaced by a random byte (often not UTF-8, a quote or a separator)."""
   data = clean[kind]
   lines = _split(data)
-  files = dict(clean)
   if what == "missing":
     return Case(what, {**clean, kind: None}, kind=kind, row=None, column=None)
   if what == "empty":
     return Case(what, {**clean, kind: b""}, kind=kind, row=1, column=None)
   if what == "header_only":
     return Case(what, {**clean, kind: _join(lines[:1] + [""])}, kind=kind, row=2, column=None)
-  if what in ("drop_column", "permute", "rename_column"):
-    table = [line.split(",") for line in lines[:-1]]
-    n = len(COLUMNS[kind])
-    if what == "permute":
-      order = rng.permutation(n)
-      files[kind] = _join([",".join(r[i] for i in order) for r in table] + [""])
-      return Case(what, files, fail=False, same=True)
-    field = int(rng.integers(n))
-    if what == "drop_column":
-      table = [r[:field] + r[field + 1 :] for r in table]
-    else:
-      table[0][field] = _pick(
-          rng, [table[0][field] + "_", table[0][field].upper(), "", table[0][(field + 1) % n]]
-      )
-    files[kind] = _join([",".join(r) for r in table] + [""])
-    return Case(what, files, kind=kind, row=1, column=COLUMNS[kind][field])
   if what == "drop_header":
     return Case(what, {**clean, kind: _join(lines[1:])}, kind=kind, row=1)
   if what == "bom_crlf":
     text = data.replace(b"\n", b"\r\n") if rng.integers(2) else data
     return Case(what, {**clean, kind: b"\xef\xbb\xbf" + text}, fail=False, same=True)
-  if what in ("nan", "text", "absurd"):
-    kinds = tuple(COLUMNS)
-    pool = {"nan": NAN_LIKE, "text": NOT_NUMBERS, "absurd": ABSURD}[what]
-    kind, column, line, value, files = _cell_case(rng, clean, what, pool, kinds)
-    what = f"{what} {kind} line {line} {column}={value!r}"
-    if column in UNUSED_TEXT:  # any text is fine there; an empty cell is warned about
-      warns = (kind, line, column) if value.strip() in NA_TEXT else None
-      return Case(what, files, fail=False, same=True, warns=warns)
-    must = not _is_number(value) or abs(float(value)) > highd.ABSURD
-    if column not in highd.READ_COLUMNS[kind]:  # read anyway, with a warning
-      return Case(what, files, fail=False, same=True, warns=(kind, line, column) if must else None)
-    if column in MARKINGS:  # a single number is not a list of markings
-      must = True
-    return Case(
-        what,
-        files,
-        fail=must,
-        kind=kind if must else None,
-        row=line if must else ANY,
-        column=column if must else ANY,
-    )
-  if what == "truncate_line":
-    line = int(rng.integers(2, len(lines)))
-    text = lines[line - 1]
-    cut = int(rng.integers(len(text)))
-    lines[line - 1] = text[:cut]
-    files[kind] = _join(lines)
-    must = _cut_must_fail(kind, text[:cut])
-    return Case(
-        what, files, fail=must, kind=kind, row=line, same=LAST_READ[kind] < text[:cut].count(",")
-    )
   if what == "cut_file":
     header_end = data.index(b"\n") + 1
     cut = int(rng.integers(header_end + 1, len(data) - 1))
@@ -227,22 +201,94 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     # A cut before the last data line drops rows, which the reader always notices.
     must = len(kept) < len(lines) - 1 or _cut_must_fail(kind, kept[-1])
     return Case(what, {**clean, kind: data[:cut]}, fail=must)
-  if what in ("duplicate", "delete", "swap"):
-    kind = _pick(rng, ("tracks", "tracksMeta"))
+  at = int(rng.integers(len(data)))
+  byte = bytes([int(rng.integers(256))])
+  return Case(what, {**clean, kind: data[:at] + byte + data[at + 1 :]}, fail=False)
+
+
+def _column_case(rng, clean, what: str, kind: str) -> Case:
+  """A column of file `kind` dropped or renamed (an error naming it), or the columns
+  permuted (read the same)."""
+  files = dict(clean)
+  table = [line.split(",") for line in _split(clean[kind])[:-1]]
+  n = len(COLUMNS[kind])
+  if what == "permute":
+    order = rng.permutation(n)
+    files[kind] = _join([",".join(r[i] for i in order) for r in table] + [""])
+    return Case(what, files, fail=False, same=True)
+  field = int(rng.integers(n))
+  if what == "drop_column":
+    table = [r[:field] + r[field + 1 :] for r in table]
+  else:
+    table[0][field] = _pick(
+        rng, [table[0][field] + "_", table[0][field].upper(), "", table[0][(field + 1) % n]]
+    )
+  files[kind] = _join([",".join(r) for r in table] + [""])
+  return Case(what, files, kind=kind, row=1, column=COLUMNS[kind][field])
+
+
+def _cell_value_case(rng, clean, what: str, kind: str) -> Case:
+  """One cell NaN-like, text or absurd: an error where the reader reads the column, a
+  warning or nothing elsewhere."""
+  del kind  # `_cell_case` draws the file itself
+  pool = {"nan": NAN_LIKE, "text": NOT_NUMBERS, "absurd": ABSURD}[what]
+  kind, column, line, value, files = _cell_case(rng, clean, what, pool, tuple(COLUMNS))
+  what = f"{what} {kind} line {line} {column}={value!r}"
+  if column in UNUSED_TEXT:  # any text is fine there; an empty cell is warned about
+    warns = (kind, line, column) if value.strip() in NA_TEXT else None
+    return Case(what, files, fail=False, same=True, warns=warns)
+  must = not _is_number(value) or abs(float(value)) > highd.ABSURD
+  if column not in highd.READ_COLUMNS[kind]:  # read anyway, with a warning
+    return Case(what, files, fail=False, same=True, warns=(kind, line, column) if must else None)
+  if column in MARKINGS:  # a single number is not a list of markings
+    must = True
+  return Case(
+      what,
+      files,
+      fail=must,
+      kind=kind if must else None,
+      row=line if must else ANY,
+      column=column if must else ANY,
+  )
+
+
+def _line_case(rng, clean, what: str, kind: str) -> Case:
+  """A line of file `kind` cut short, or a data line of the tracks or tracksMeta file
+  duplicated, deleted or swapped with another."""
+  if what == "truncate_line":
     lines = _split(clean[kind])
     line = int(rng.integers(2, len(lines)))
-    if what == "duplicate":
-      lines.insert(line, lines[line - 1])
-    elif what == "delete":
-      del lines[line - 1]
-    else:
-      other = int(rng.integers(2, len(lines)))
-      if other == line:
-        other = line + 1 if line + 1 < len(lines) else line - 1
-      lines[line - 1], lines[other - 1] = lines[other - 1], lines[line - 1]
-      if kind == "tracksMeta":  # the order of the vehicles does not matter
-        return Case(what, {**clean, kind: _join(lines)}, fail=False, same=True)
-    return Case(what, {**clean, kind: _join(lines)})
+    text = lines[line - 1]
+    cut = int(rng.integers(len(text)))
+    lines[line - 1] = text[:cut]
+    must = _cut_must_fail(kind, text[:cut])
+    return Case(
+        what,
+        {**clean, kind: _join(lines)},
+        fail=must,
+        kind=kind,
+        row=line,
+        same=LAST_READ[kind] < text[:cut].count(","),
+    )
+  kind = _pick(rng, ("tracks", "tracksMeta"))
+  lines = _split(clean[kind])
+  line = int(rng.integers(2, len(lines)))
+  if what == "duplicate":
+    lines.insert(line, lines[line - 1])
+  elif what == "delete":
+    del lines[line - 1]
+  else:
+    other = int(rng.integers(2, len(lines)))
+    if other == line:
+      other = line + 1 if line + 1 < len(lines) else line - 1
+    lines[line - 1], lines[other - 1] = lines[other - 1], lines[line - 1]
+    if kind == "tracksMeta":  # the order of the vehicles does not matter
+      return Case(what, {**clean, kind: _join(lines)}, fail=False, same=True)
+  return Case(what, {**clean, kind: _join(lines)})
+
+
+def _id_case(rng, clean, what: str) -> Case:
+  """An unknown track id, malformed lane markings, or a vehicle's drivingDirection flipped."""
   if what == "unknown_id":
     kind = "tracks"
     lines = _split(clean[kind])
@@ -261,18 +307,13 @@ def make_case(rng, clean) -> Case:  # noqa: C901 (one branch per corruption)
     return Case(
         what, {**clean, "recordingMeta": _join(lines)}, kind="recordingMeta", row=2, column=column
     )
-  if what == "direction":
-    lines = _split(clean["tracksMeta"])
-    line = int(rng.integers(2, len(lines)))
-    cells = lines[line - 1].split(",")
-    field = COLUMNS["tracksMeta"].index("drivingDirection")
-    cells[field] = "1" if cells[field] == "2" else "2"
-    lines[line - 1] = ",".join(cells)
-    return Case(what, {**clean, "tracksMeta": _join(lines)}, kind="tracks", column="xVelocity")
-  # "bytes": one byte replaced by a random byte (often not UTF-8, a quote or a separator).
-  at = int(rng.integers(len(data)))
-  byte = bytes([int(rng.integers(256))])
-  return Case(what, {**clean, kind: data[:at] + byte + data[at + 1 :]}, fail=False)
+  lines = _split(clean["tracksMeta"])  # "direction"
+  line = int(rng.integers(2, len(lines)))
+  cells = lines[line - 1].split(",")
+  field = COLUMNS["tracksMeta"].index("drivingDirection")
+  cells[field] = "1" if cells[field] == "2" else "2"
+  lines[line - 1] = ",".join(cells)
+  return Case(what, {**clean, "tracksMeta": _join(lines)}, kind="tracks", column="xVelocity")
 
 
 def _write(directory: Path, files: dict) -> None:
