@@ -1,0 +1,50 @@
+"""experiments/benchmark_quality.py: the prediction cache returns what the predictor said."""
+
+import types
+
+import numpy as np
+
+from experiments import benchmark_quality as bq
+
+
+def _fake_predictor(calls):
+  def predict(scenarios, seed=0):
+    calls.append(seed)
+    m = len(scenarios.xi)
+    rng = np.random.default_rng(seed)
+    traj = rng.normal(size=(m, 4, 125, 2)).astype(np.float32)
+    probs = np.tile(np.array([0.75, 0.25, 0.0], np.float32), (m, 1))
+    hyp = types.SimpleNamespace(means=traj[:, :3], probs=probs, labels=np.zeros((m, 4), np.int32))
+    return types.SimpleNamespace(
+        prediction=types.SimpleNamespace(trajectories=traj),
+        hypotheses=hyp,
+        q=np.arange(m),
+        delta=np.array([1.0, 5.0, np.nan][:m], np.float32),
+    )
+
+  predict.delta_limit = 2.0
+  return predict
+
+
+def test_cache_predicts_once_per_inputs_and_seed(tmp_path):
+  calls = []
+  fake = _fake_predictor(calls)
+  cached = bq._cached(fake, tmp_path / "predictions", "run")
+  xi = np.random.default_rng(0).normal(size=(3, 9, 75, 4)).astype(np.float32)
+  scen = types.SimpleNamespace(xi=xi, mask=np.ones(xi.shape[:3], bool))
+  first = cached(scen, 0)
+  again = cached(scen, 0)
+  assert calls == [0]  # the second call read the cache
+  want = fake(scen, seed=0)
+  for out in (first, again):
+    np.testing.assert_array_equal(out.prediction.trajectories, want.prediction.trajectories)
+    np.testing.assert_array_equal(out.prediction.mean, want.prediction.trajectories.mean(1))
+    np.testing.assert_array_equal(out.hypotheses.probs, want.hypotheses.probs)
+    np.testing.assert_array_equal(out.hypotheses.num_modes, [2, 2, 2])
+    np.testing.assert_array_equal(out.q, want.q)
+    np.testing.assert_array_equal(out.out_of_distribution, [False, True, True])  # NaN: out
+  cached(scen, 1)
+  other = types.SimpleNamespace(xi=xi + 1.0, mask=scen.mask)
+  cached(other, 0)
+  assert calls == [0, 0, 1, 0]  # `want` above, then a new seed and new inputs predict
+  assert len(list((tmp_path / "predictions").glob("run_*.npz"))) == 3
