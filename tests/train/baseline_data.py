@@ -66,6 +66,13 @@ def write(data_dir: Path, tokenizer_dir: Path, sizes=(("train", 48), ("val", 24)
     )
 
 
+def written(root: Path) -> Path:
+  """`root` once `write` has put the dataset in `root/data` and its tokens in
+  `root/tokenizer` (what `run_config` points a run at)."""
+  write(root / "data", root / "tokenizer")
+  return root
+
+
 def run_config(config, root: Path, **train):
   """A learned baseline's :tiny preset `config` on `write`'s data and tokens under `root`:
   4 epochs at lr 3e-3, every epoch's checkpoint kept (for the resume test); `train`

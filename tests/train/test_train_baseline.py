@@ -20,9 +20,7 @@ from tests.train import baseline_data
 
 @pytest.fixture(scope="module")
 def dirs(tmp_path_factory):
-  root = tmp_path_factory.mktemp("baseline")
-  baseline_data.write(root / "data", root / "tokenizer")
-  return root
+  return baseline_data.written(tmp_path_factory.mktemp("baseline"))
 
 
 def _config(dirs, **train):

@@ -25,9 +25,7 @@ from tests.train import baseline_data
 
 @pytest.fixture(scope="module")
 def dirs(tmp_path_factory):
-  root = tmp_path_factory.mktemp("mdn")
-  baseline_data.write(root / "data", root / "tokenizer")
-  return root
+  return baseline_data.written(tmp_path_factory.mktemp("mdn"))
 
 
 def _config(dirs, **train):
