@@ -3,8 +3,9 @@
 A model is a `Model`: a name, its distribution (`WeightedSamples` or `GaussianMixture`),
 whether its weighted points are samples drawn from a model (`fair`: cVMDx's N samples, an
 MDN sampled) or the distribution itself (heads with their p, hypotheses, a point mass),
-and optionally its K-set (hypotheses / heads / modes with their probabilities) for the
-best-of-K metrics. `scenario_scores` returns, per scenario (M,):
+optionally its K-set (hypotheses / heads / modes with their probabilities) for the
+best-of-K metrics, and optionally a cluster per point (`labels`: the density is then a
+Gaussian per cluster, `regions.components`). `scenario_scores` returns, per scenario (M,):
 
 - `energy_score` (m, `probabilistic.weighted_energy_score`; a mixture sampled with
   `ES_SAMPLES` draws, fair);
@@ -38,6 +39,7 @@ class Model:
   distribution: WeightedSamples | GaussianMixture
   fair: bool = False
   k_set: WeightedSamples | None = None
+  labels: np.ndarray | None = None  # (M, N) int cluster of each point
 
 
 def choose_bandwidths(model: Model, gt) -> tuple:
@@ -47,7 +49,8 @@ def choose_bandwidths(model: Model, gt) -> tuple:
   if isinstance(model.distribution, GaussianMixture):
     return None
   return tuple(
-      regions.choose_bandwidth(model.distribution, gt, step) for step in regions.HORIZON_STEPS
+      regions.choose_bandwidth(model.distribution, gt, step, labels=model.labels)
+      for step in regions.HORIZON_STEPS
   )
 
 
@@ -80,7 +83,7 @@ def scenario_scores(model: Model, gt, bandwidths, key: jax.Array, extra_levels=N
   nominal = np.broadcast_to(np.asarray(regions.LEVELS, np.float32), (len(gt), len(regions.LEVELS)))
   for i, (s, step) in enumerate(zip(regions.HORIZONS_S, regions.HORIZON_STEPS)):
     mix = regions.at_horizon(
-        model.distribution, step, None if bandwidths is None else bandwidths[i]
+        model.distribution, step, None if bandwidths is None else bandwidths[i], model.labels
     )
     out[f"nll_{s}s"] = np.asarray(regions.nll(mix, gt[:, step]))
     levels = (

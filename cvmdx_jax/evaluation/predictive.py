@@ -1,6 +1,7 @@
 """Every model's prediction on a split as a `model_scores.Model`, scored the same way.
 
-cvmdx_samples     cVMDx's N samples (uniform, fair); K-set: its hypotheses
+cvmdx_samples     cVMDx's N samples (uniform, fair); K-set: its hypotheses; density: a
+                  Gaussian per hypothesis cluster of the samples (labels)
 cvmdx_hypotheses  cVMDx's K hypotheses with their probabilities (what users get)
 mlp_heads         the WTA MLP's heads with their p (`inference.bundles.LearnedBaseline`)
 mdn               the mixture density network (exact density; sampled for the energy
@@ -41,7 +42,7 @@ def cvmdx_models(output) -> list:
   )
   samples = WeightedSamples.uniform(jnp.asarray(output.prediction.trajectories, jnp.float32))
   return [
-      Model("cvmdx_samples", samples, fair=True, k_set=hypotheses),
+      Model("cvmdx_samples", samples, fair=True, k_set=hypotheses, labels=np.asarray(hyp.labels)),
       Model("cvmdx_hypotheses", hypotheses, k_set=hypotheses),
   ]
 

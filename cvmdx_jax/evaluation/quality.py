@@ -62,7 +62,7 @@ def _calibrate(model, bandwidths, scenarios, delta, key) -> dict:
   plain, by_delta = [], []
   for i, step in enumerate(regions.HORIZON_STEPS):
     mix = regions.at_horizon(
-        model.distribution, step, None if bandwidths is None else bandwidths[i]
+        model.distribution, step, None if bandwidths is None else bandwidths[i], model.labels
     )
     u, _ = regions.hdr(jax.random.fold_in(key, i), mix, gt[:, step], (CALIBRATION_LEVEL,))
     plain.append(conformal.calibrated_level(u, CALIBRATION_LEVEL))
@@ -122,6 +122,7 @@ def _pooled(models_by_set: list, deltas: list, sets: list):
           group[0],
           distribution=jax.tree.map(cat, *[m.distribution for m in group]),
           k_set=None if group[0].k_set is None else jax.tree.map(cat, *[m.k_set for m in group]),
+          labels=None if group[0].labels is None else cat(*[m.labels for m in group]),
       )
       for group in zip(*models_by_set)
   ]

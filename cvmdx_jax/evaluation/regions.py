@@ -12,6 +12,10 @@ Every model's prediction at a horizon becomes a 2-D mixture of axis-aligned Gaus
   `BANDWIDTH_GRID_M`^2 (`choose_bandwidth`); c = 0 is one fixed bandwidth for every
   scenario (the density used before 2026-12-06 evening). For a point mass (sd = 0) this is
   a Gaussian around it whose spread is fitted on val.
+- `WeightedSamples` with a cluster per point (cVMDx's samples and their hypothesis labels):
+  a Gaussian per cluster, weighted by the cluster's share of the samples, at the cluster's
+  mean with per-axis width sqrt((c sd_{m,k,a})^2 + f_a^2), sd the cluster's own (maximum
+  likelihood) spread; the rule chosen on val in the same way (`components`).
 
 `nll` is -log p(y) in nats (density per m^2). The highest-density region (HDR) of level
 a is {z : p(z) >= t_a} with mass a; `hdr` draws `HDR_DRAWS` positions z from p and
@@ -29,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cvmdx_jax import constants
+from cvmdx_jax.evaluation import probabilistic
 from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 HORIZONS_S = (1, 2, 3, 4, 5)
@@ -64,15 +69,29 @@ def kernel_widths(sd, rule):
   return jnp.sqrt((c * sd) ** 2 + floor**2)
 
 
-def at_horizon(dist, step: int, bandwidth=None) -> HorizonMixture:
-  """The density of `dist` at future index `step`; bandwidth: the kernel rule (c, f_lon,
-  f_lat) (module docstring) for `WeightedSamples`, None for a `GaussianMixture`."""
-  if isinstance(dist, GaussianMixture):
-    return HorizonMixture(dist.means[:, :, step], dist.stds[:, :, step], dist.weights)
+def components(dist: WeightedSamples, step: int, labels=None):
+  """Centres (M, K, 2), weights (M, K) and spreads sd (M, K, 2) of the density's components
+  at `step`: every point with the scenario's spread, or (labels (M, N) int, the cluster of
+  each point) every cluster's mean, share and own spread (module docstring)."""
   points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
   weights = jnp.asarray(dist.weights, jnp.float32)
-  widths = kernel_widths(spread(points, weights), tuple(float(v) for v in bandwidth))
-  return HorizonMixture(points, jnp.broadcast_to(widths[:, None], points.shape), weights)
+  if labels is None:
+    return points, weights, jnp.broadcast_to(spread(points, weights)[:, None], points.shape)
+  clusters = int(np.max(labels)) + 1
+  means, cov = probabilistic.hypothesis_covariances(points, jnp.asarray(labels), clusters, 0.0)
+  share = jnp.mean(jax.nn.one_hot(jnp.asarray(labels), clusters, dtype=jnp.float32), axis=1)
+  sd = jnp.sqrt(jnp.maximum(jnp.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+  return means, share, sd
+
+
+def at_horizon(dist, step: int, bandwidth=None, labels=None) -> HorizonMixture:
+  """The density of `dist` at future index `step`; bandwidth: the rule (c, f_lon, f_lat)
+  (module docstring) for `WeightedSamples` (labels: a cluster per point, see `components`),
+  None for a `GaussianMixture`."""
+  if isinstance(dist, GaussianMixture):
+    return HorizonMixture(dist.means[:, :, step], dist.stds[:, :, step], dist.weights)
+  centres, weights, sd = components(dist, step, labels)
+  return HorizonMixture(centres, kernel_widths(sd, tuple(float(v) for v in bandwidth)), weights)
 
 
 def _component_log_pdf(mix: HorizonMixture, z):
@@ -95,11 +114,11 @@ def nll(mix: HorizonMixture, y):
 
 
 @jax.jit
-def _grid_nll(points, weights, y, valid, scale, grid):
-  """Sum over the valid scenarios of -log p(y) with kernel widths sqrt((scale sd)^2 + f^2)
-  for every floor pair (f_lon, f_lat) of grid (G,) -> (G, G)."""
+def _grid_nll(points, weights, sd, y, valid, scale, grid):
+  """Sum over the valid scenarios of -log p(y) with component widths sqrt((scale sd)^2 +
+  f^2), sd (M, N, 2), for every floor pair (f_lon, f_lat) of grid (G,) -> (G, G)."""
   dev = y[:, None] - points  # (M, N, 2)
-  widths = jnp.sqrt((scale * spread(points, weights))[:, None, :, None] ** 2 + grid**2)
+  widths = jnp.sqrt((scale * sd)[..., None] ** 2 + grid**2)
   per_axis = (
       -0.5 * (dev[..., None] / widths) ** 2 - jnp.log(widths) - 0.5 * math.log(2.0 * math.pi)
   )  # (M, N, 2, G)
@@ -110,18 +129,24 @@ def _grid_nll(points, weights, y, valid, scale, grid):
 
 
 def choose_bandwidth(
-    dist: WeightedSamples, gt, step: int, grid=BANDWIDTH_GRID_M, scales=SCALE_GRID
+    dist: WeightedSamples,
+    gt,
+    step: int,
+    grid=BANDWIDTH_GRID_M,
+    scales=SCALE_GRID,
+    labels=None,
 ) -> tuple[float, float, float]:
-  """The kernel rule (c, f_lon, f_lat) of `scales` x `grid`^2 with the smallest mean NLL of
-  gt[:, step] (call it on val; ties go to the smaller c)."""
-  points = np.asarray(dist.points, np.float32)[:, :, step]
-  weights, y = np.asarray(dist.weights, np.float32), np.asarray(gt, np.float32)[:, step]
+  """The rule (c, f_lon, f_lat) of `scales` x `grid`^2 with the smallest mean NLL of
+  gt[:, step] (call it on val; ties go to the smaller c); labels as `components`."""
+  points, weights, sd = (np.asarray(a) for a in components(dist, step, labels))
+  y = np.asarray(gt, np.float32)[:, step]
   grid = jnp.asarray(grid, jnp.float32)
   size = min(_CHUNK, len(y))
   blocks = [
       (
           _pad(points[i:j], size),
           _pad(weights[i:j], size),
+          _pad(sd[i:j], size),
           _pad(y[i:j], size),
           jnp.arange(size) < j - i,
       )

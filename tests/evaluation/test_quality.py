@@ -54,7 +54,11 @@ def _fake_predictor(shape):
     centre = 3.0 * (scenarios.label[:, None, None] - 1.0)
     lat = (centre + rng.normal(0, SPREAD_M, (m, N, 1))) * shape
     traj = np.stack([lon, lat], -1).astype(np.float32)
-    hyp = types.SimpleNamespace(means=traj[:, :3], probs=np.full((m, 3), 1 / 3, np.float32))
+    hyp = types.SimpleNamespace(
+        means=traj[:, :3],
+        probs=np.full((m, 3), 1 / 3, np.float32),
+        labels=np.arange(N)[None].repeat(m, 0) % 2,  # two clusters of the same distribution
+    )
     return types.SimpleNamespace(
         prediction=types.SimpleNamespace(trajectories=traj),
         hypotheses=hyp,
