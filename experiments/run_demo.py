@@ -146,12 +146,12 @@ def main(argv):
   for i, steps in enumerate(_DISTILL_STEPS.value):
     student = root / f"student_progressive_{steps}"
     kind = "progressive" if i else "guided progressive"
-    _stage(f"3b/5 {kind} distillation, {steps} steps (preset {_DISTILL.value}) -> {student}", start)
-    dist_cfg = distill_config.get_config(_DISTILL.value)
+    # a halving: the student regresses two steps of its teacher (`:halving`)
+    preset = f"{_DISTILL.value},halving" if i else _DISTILL.value
+    _stage(f"3b/5 {kind} distillation, {steps} steps (preset {preset}) -> {student}", start)
+    dist_cfg = distill_config.get_config(preset)
     dist_cfg.teacher_dir, dist_cfg.steps = str(teacher), int(steps)
     dist_cfg.guided_progressive, dist_cfg.seed = i == 0, _SEED.value
-    if i:  # a halving: the student regresses two steps of its teacher
-      dist_cfg.teacher_substeps = 2
     distill_train.train(DistillRunConfig.from_config(dist_cfg), student)
     teacher = student
 
