@@ -26,7 +26,6 @@ from cvmdx_jax import cli  # first: a signal during the imports below is one lin
 
 # isort: split
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -37,12 +36,17 @@ from absl import app, flags
 from configs import dataset as dataset_config
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
-from cvmdx_jax.evaluation import figures, learned_baseline, quality, quality_tables, regions
+from cvmdx_jax.evaluation import (
+    figures,
+    learned_baseline,
+    prediction_cache,
+    quality,
+    quality_tables,
+    regions,
+)
 from cvmdx_jax.inference import mdn_baseline
 from cvmdx_jax.inference.bundles import load_baseline
-from cvmdx_jax.inference.predictor import Predictor, PredictorOutput
-from cvmdx_jax.inference.sampling import Prediction
-from cvmdx_jax.multimodal import Hypotheses
+from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.storage import atomic, checksums
 
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (dataset cached inside).")
@@ -108,48 +112,9 @@ def _subset(scenarios, size: int):
   return scenarios.take(balanced_indices(scenarios.label, _SEED.value, size))
 
 
-def _cached(predictor, cache_dir: Path, run_name: str):
-  """`predictor` whose outputs are kept in cache_dir, keyed by the inputs and the seed
-  (controls are not kept: None)."""
-
-  def predict(scenarios, seed):
-    digest = hashlib.sha256(np.asarray(scenarios.xi, np.float32).tobytes())
-    digest.update(np.asarray(scenarios.mask, bool).tobytes() + str(seed).encode())
-    path = cache_dir / f"{run_name}_{digest.hexdigest()[:16]}.npz"
-    if not path.is_file():
-      out = predictor(scenarios, seed=seed)
-      hyp = out.hypotheses
-      fields = {
-          "trajectories": out.prediction.trajectories,
-          "hyp_means": hyp.means,
-          "hyp_probs": hyp.probs,
-          "hyp_labels": hyp.labels,
-          "q": out.q,
-          "delta": out.delta,
-      }
-      arrays = {k: np.asarray(v) for k, v in fields.items()}
-      cache_dir.mkdir(exist_ok=True)
-      checksums.write_all({path: checksums.npz_bytes(**arrays)})
-    with np.load(path) as z:
-      probs, traj = z["hyp_probs"], z["trajectories"]
-      num = np.sum(probs > 0, axis=1)
-      hyp = Hypotheses(
-          num, num, z["hyp_labels"], z["hyp_means"], probs, np.full(probs.shape, np.nan)
-      )
-      delta = z["delta"]
-      return PredictorOutput(
-          Prediction(None, traj, traj.mean(axis=1), hyp),
-          z["q"],
-          delta,
-          ~(delta <= predictor.delta_limit),
-      )
-
-  return predict
-
-
 def _score_run(run: Path, large: dict, calibration, workdir: Path, log):
   predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
-  predict = _cached(predictor, workdir / "predictions", run.name)
+  predict = prediction_cache.cached(predictor, workdir / "predictions", run.name)
   baseline = None
   if (run / "baseline").is_dir():
     baseline = load_baseline(run / "baseline")

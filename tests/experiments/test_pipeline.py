@@ -265,7 +265,9 @@ def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatc
   # a dataset without test_ood (highD, cvmd_mat): the test report only, and a note
   monkeypatch.setattr(report.dataset_lib, "split_names", lambda _: ["train", "val", "test"])
   calls = []
-  monkeypatch.setattr(report, "_split", lambda data_dir, split, *_: calls.append(split))
+  monkeypatch.setattr(
+      report.dataset_lib, "load_balanced", lambda data_dir, split, *_: calls.append(split)
+  )
   monkeypatch.setattr(report.report_models, "load", lambda **_: None)
   monkeypatch.setattr(
       report, "evaluate", lambda *_, **kw: types.SimpleNamespace(results=kw["split"])

@@ -1,10 +1,10 @@
-"""experiments/benchmark_quality.py: the prediction cache returns what the predictor said."""
+"""evaluation/prediction_cache.py: the cache returns what the predictor said."""
 
 import types
 
 import numpy as np
 
-from experiments import benchmark_quality as bq
+from cvmdx_jax.evaluation import prediction_cache
 
 
 def _fake_predictor(calls):
@@ -29,7 +29,7 @@ def _fake_predictor(calls):
 def test_cache_predicts_once_per_inputs_and_seed(tmp_path):
   calls = []
   fake = _fake_predictor(calls)
-  cached = bq._cached(fake, tmp_path / "predictions", "run")
+  cached = prediction_cache.cached(fake, tmp_path / "predictions", "run")
   xi = np.random.default_rng(0).normal(size=(3, 9, 75, 4)).astype(np.float32)
   scen = types.SimpleNamespace(xi=xi, mask=np.ones(xi.shape[:3], bool))
   first = cached(scen, 0)
