@@ -574,6 +574,7 @@ def _distill(teacher_dir, workdir, steps, guided_progressive=False, teacher_subs
   return distill.train(DistillRunConfig.from_config(config), workdir)
 
 
+@pytest.mark.slow  # trains five tiny students (~150 s); tests/train/test_distill.py covers a stage
 def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_path, monkeypatch):
   scenarios = dataset.load_split(runs / "data", "test").take(np.arange(4))
   teacher = load_denoiser(runs / "diffusion")
