@@ -470,6 +470,21 @@ def test_keyboard_interrupt_in_process_exits_130(monkeypatch, capsys):
   assert capsys.readouterr().err == "evaluate: error: interrupted; rerun to resume\n"
 
 
+def _start_as_in_a_terminal(args: list[str]) -> subprocess.Popen:
+  """`args` started in the repository on CPU, text pipes, SIGINT at its default as in a
+  terminal: a parent that ignores it (an xdist worker may) would pass the ignore on to the
+  child, which then never sees the signal."""
+  return subprocess.Popen(
+      args,
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      stdout=subprocess.PIPE,
+      stderr=subprocess.PIPE,
+      text=True,
+      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+  )
+
+
 def test_sigint_gives_one_line_and_status_130(tmp_path):
   script = tmp_path / "sleeper.py"
   script.write_text(
@@ -480,18 +495,7 @@ def test_sigint_gives_one_line_and_status_130(tmp_path):
       "  time.sleep(60)\n"
       "cli.run(main)\n"
   )
-  env = environ(JAX_PLATFORMS="cpu")
-  # SIGINT as in a terminal: a parent that ignores it (an xdist worker may) would pass the
-  # ignore on to the child, which then never sees the signal.
-  proc = subprocess.Popen(
-      [sys.executable, str(script)],
-      cwd=REPO,
-      env=env,
-      stdout=subprocess.PIPE,
-      stderr=subprocess.PIPE,
-      text=True,
-      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-  )
+  proc = _start_as_in_a_terminal([sys.executable, str(script)])
   try:
     assert proc.stdout.readline() == "ready\n"
     proc.send_signal(signal.SIGINT)
@@ -532,20 +536,14 @@ def test_run_exported_stops_with_one_line(tmp_path):
   (tmp_path / "export").mkdir()
   fifo = tmp_path / "export" / "manifest.json"
   os.mkfifo(fifo)
-  proc = subprocess.Popen(
+  proc = _start_as_in_a_terminal(
       [
           sys.executable,
           "experiments/run_exported.py",
           f"--export_dir={tmp_path / 'export'}",
           f"--inputs={tmp_path / 'in.npz'}",
           f"--out={tmp_path / 'out.npz'}",
-      ],
-      cwd=REPO,
-      env=environ(JAX_PLATFORMS="cpu"),
-      stdout=subprocess.PIPE,
-      stderr=subprocess.PIPE,
-      text=True,
-      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
+      ]
   )
   try:
     with open(fifo, "w"):  # returns once the script opened it: it is past its imports
@@ -572,15 +570,7 @@ def _imports_jaxlib(pid: int) -> bool:
 def test_a_signal_during_the_imports_gives_one_line(script, signum):
   """The signal arrives once JAX's extension is loaded: the script still has seconds of
   imports ahead (flax, orbax, its modules) before `cli.run` installs its handlers."""
-  proc = subprocess.Popen(
-      [sys.executable, str(REPO / "experiments" / f"{script}.py")],
-      cwd=REPO,
-      env=environ(JAX_PLATFORMS="cpu"),
-      stdout=subprocess.PIPE,
-      stderr=subprocess.PIPE,
-      text=True,
-      preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal
-  )
+  proc = _start_as_in_a_terminal([sys.executable, str(REPO / "experiments" / f"{script}.py")])
   try:
     while not _imports_jaxlib(proc.pid) and proc.poll() is None:
       time.sleep(0.01)
