@@ -132,11 +132,14 @@ def progressive_target(teacher_v_fn, x_t, ts, abars, abar_next, clip_x0: float |
     (B, ...) v at (x_t, abars[:, 0]) of the x0 that one DDIM step must use to reach the
     teacher's k-step result.
   """
-  x = x_t
-  ends = [abars[:, j] for j in range(1, ts.shape[1])] + [abar_next]
-  for j, a_end in enumerate(ends):
-    x0, eps = predict_x0_eps(teacher_v_fn, x, ts[:, j], abars[:, j], clip_x0)
-    x = ddim_update(x0, eps, a_end)
+  ends = jnp.concatenate([abars[:, 1:], abar_next[:, None]], axis=1)
+
+  def teacher_step(x, step):  # one teacher DDIM step; a scan: one U-Net in the program
+    t, a_t, a_end = step
+    x0, eps = predict_x0_eps(teacher_v_fn, x, t, a_t, clip_x0)
+    return ddim_update(x0, eps, a_end), None
+
+  x, _ = jax.lax.scan(teacher_step, x_t, (ts.T, abars.T, ends.T))
   expand = lambda a: jnp.reshape(a, a.shape + (1,) * (x_t.ndim - a.ndim))
   abar_t = abars[:, 0]
   a_t, a_next = expand(abar_t), expand(abar_next)
