@@ -7,18 +7,19 @@ STAMP := $(VENV)/.installed
 .PHONY: install jemalloc openmpi demo test test-slow benchmark benchmark-quality lint clean
 
 # The pinned dependencies, then this project editable (cvmdx_jax and configs importable from
-# anywhere; edits take effect without reinstalling). setuptools >= 70.1 builds it without
-# the wheel package; --no-deps: the lock already holds every dependency. The lock goes in
-# with uv (12 s against pip's 52 s on 2 cores, BUILD_NOTES.md), by pip where uv fails
-# (e.g. an index that only pip's own configuration names).
+# anywhere; edits take effect without reinstalling); --no-deps: the lock already holds every
+# dependency. Both go in with uv (12 s against pip's 52 s on 2 cores, BUILD_NOTES.md); where
+# uv fails (e.g. an index that only pip's own configuration names), by pip, with setuptools
+# >= 70.1 first (it builds the editable install without the wheel package).
 UV_VERSION := 0.13.9
 $(STAMP): requirements.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip "setuptools>=70.1"
 	($(PY) -m pip install -q uv==$(UV_VERSION) \
-	  && $(VENV)/bin/uv pip install -q --python $(PY) -r requirements.lock) \
-	  || $(PY) -m pip install -q -r requirements.lock
-	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	  && $(VENV)/bin/uv pip install -q --python $(PY) -r requirements.lock \
+	  && $(VENV)/bin/uv pip install -q --python $(PY) --no-deps -e .) \
+	|| ($(PY) -m pip install -q --upgrade pip "setuptools>=70.1" \
+	  && $(PY) -m pip install -q -r requirements.lock \
+	  && $(PY) -m pip install -q --no-deps --no-build-isolation -e .)
 	@$(MAKE) --no-print-directory jemalloc
 	touch $(STAMP)
 

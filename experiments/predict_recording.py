@@ -69,7 +69,7 @@ _CHUNK = flags.DEFINE_integer(
     "chunk_size",
     None,
     "Vehicle-frames per jitted call (default: 256, fewer where their samples would exceed "
-    "4,096 trajectories a call).",
+    "2,304 trajectories a call).",
     lower_bound=1,
 )
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")

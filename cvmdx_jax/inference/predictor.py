@@ -109,12 +109,15 @@ def _fold_ids(key, ids):
 
 
 SCENARIOS_PER_CALL = 256  # the most scenarios a call holds by default
-SAMPLES_PER_CALL = 4096  # the most sampled trajectories (scenarios x N) a call holds by default
+# the most sampled trajectories (scenarios x N) a call holds by default: the paper's N = 9 at
+# 256 scenarios (N = 64: 36 scenarios, 0.43 GB less peak memory than 64 in `make demo`'s
+# evaluation, not slower; docs/log/2026-12-06-demo-time.md)
+SAMPLES_PER_CALL = 2304
 
 
 def default_chunk(num_samples: int) -> int:
   """Scenarios per call by default: 256, fewer where N samples each would exceed
-  `SAMPLES_PER_CALL` trajectories (N = 9: 256, N = 64: 64)."""
+  `SAMPLES_PER_CALL` trajectories (N = 9: 256, N = 64: 36)."""
   return max(1, min(SCENARIOS_PER_CALL, SAMPLES_PER_CALL // num_samples))
 
 

@@ -61,8 +61,8 @@ def test_default_chunk_bounds_the_samples_of_a_call_not_the_scenarios(monkeypatc
   assert [predict.default_chunk(n) for n in (1, 9, 16, 64, 4096, 10_000)] == [
       256,
       256,
-      256,
-      64,
+      144,
+      36,
       1,
       1,
   ]
