@@ -54,6 +54,13 @@ def choose_bandwidths(model: Model, gt) -> tuple:
   )
 
 
+def density_at(model: Model, bandwidths, i: int) -> regions.HorizonMixture:
+  """`model`'s density at the i-th of `regions.HORIZON_STEPS`, with its rule from
+  `choose_bandwidths` (None for a mixture) and its clusters."""
+  rule = None if bandwidths is None else bandwidths[i]
+  return regions.at_horizon(model.distribution, regions.HORIZON_STEPS[i], rule, model.labels)
+
+
 def _energy_scores(model: Model, gt, key) -> np.ndarray:
   dist, fair = model.distribution, model.fair
   if isinstance(dist, GaussianMixture):
@@ -82,9 +89,7 @@ def scenario_scores(model: Model, gt, bandwidths, key: jax.Array, extra_levels=N
   out = {"energy_score": _energy_scores(model, gt, es_key)}
   nominal = np.broadcast_to(np.asarray(regions.LEVELS, np.float32), (len(gt), len(regions.LEVELS)))
   for i, (s, step) in enumerate(zip(regions.HORIZONS_S, regions.HORIZON_STEPS)):
-    mix = regions.at_horizon(
-        model.distribution, step, None if bandwidths is None else bandwidths[i], model.labels
-    )
+    mix = density_at(model, bandwidths, i)
     out[f"nll_{s}s"] = np.asarray(regions.nll(mix, gt[:, step]))
     levels = (
         nominal

@@ -61,9 +61,7 @@ def _calibrate(model, bandwidths, scenarios, delta, key) -> dict:
   bins = np.digitize(delta, edges)
   plain, by_delta = [], []
   for i, step in enumerate(regions.HORIZON_STEPS):
-    mix = regions.at_horizon(
-        model.distribution, step, None if bandwidths is None else bandwidths[i], model.labels
-    )
+    mix = model_scores.density_at(model, bandwidths, i)
     u, _ = regions.hdr(jax.random.fold_in(key, i), mix, gt[:, step], (CALIBRATION_LEVEL,))
     plain.append(conformal.calibrated_level(u, CALIBRATION_LEVEL))
     by_delta.append(

@@ -90,7 +90,8 @@ def test_write_clip_predicts_the_section_and_writes_the_gif(tmp_path):
       section_m=100.0,
       num_samples=None,
   )
-  assert Image.open(path).n_frames == 6
+  with Image.open(path) as gif:  # closed here: an open file left to the collector warns
+    assert gif.n_frames == 6
   tracks = pd.read_csv(highd.recording_paths(tmp_path, 1)["tracks"])
   centre = tracks["x"] + 2.0
   middle = (centre.min() + centre.max()) / 2
