@@ -14,7 +14,7 @@
 
 The quality benchmark (experiments/benchmark_quality.py), the same definitions for every
 model (each takes `inference.distributions.WeightedSamples` or `GaussianMixture`):
-  regions    density at 1..5 s (kernels with val-chosen bandwidths, or a mixture's own),
+  regions    density at 1..5 s (kernels and a wide tail chosen on val, or a mixture's own),
              NLL, highest-density regions (coverage, area)
   model_scores  per-scenario proper and point scores of one model
   predictive    every model's prediction as a `model_scores.Model`

@@ -10,9 +10,9 @@ Gaussian per cluster, `regions.components`). `scenario_scores` returns, per scen
 - `energy_score` (m, `probabilistic.weighted_energy_score`; a mixture sampled with
   `ES_SAMPLES` draws, fair);
 - `nll_<s>s` (nats) and `hdr_u_<s>s` (the mass of the smallest highest-density region
-  holding the truth; inside the level-a region iff u <= a) at s = 1..5 (`regions`; kernel
-  kernel rules from `choose_bandwidths` on val), `area_<pct>_<s>s` (m^2) of the 50 / 90 /
-  95 % regions;
+  holding the truth; inside the level-a region iff u <= a) at s = 1..5 (`regions`; the
+  kernel and tail rules from `choose_bandwidths` on val), `area_<pct>_<s>s` (m^2) of the
+  50 / 90 / 95 % regions;
 - `ade`, `fde`, `sq_err_<s>s` (m, m^2) of the mean trajectory (RMSE at s = the root of the
   mean of `sq_err_<s>s`);
 - given a K-set: `min_ade`, `min_fde`, `miss_rate`, `brier_min_fde` (`scoring.best_of_k_errors`).
@@ -43,7 +43,7 @@ class Model:
 
 
 def choose_bandwidths(model: Model, gt) -> tuple:
-  """Per horizon of `regions.HORIZON_STEPS` the kernel rule (c, f_lon m, f_lat m) chosen on
+  """Per horizon of `regions.HORIZON_STEPS` the rule (c, f_lon m, f_lat m, eps, lam) chosen on
   these scenarios (give val; `regions.choose_bandwidth`); None for a mixture (its own
   density)."""
   if isinstance(model.distribution, GaussianMixture):

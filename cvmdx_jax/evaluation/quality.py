@@ -24,7 +24,7 @@ class RunScores:
   """One trained run's scores.
 
   Attributes:
-    bandwidths: {model: per horizon the kernel rule (c, f_lon m, f_lat m) or None}, chosen
+    bandwidths: {model: per horizon the rule (c, f_lon m, f_lat m, eps, lam) or None}, chosen
       on val (`regions`).
     levels: {model: {"plain": (5,) calibrated levels per horizon, "delta": (3, 5) per delta
       tercile}} of `CALIBRATION_LEVEL`, and {"pc": threshold} for the K-set models.

@@ -16,6 +16,12 @@ Every model's prediction at a horizon becomes a 2-D mixture of axis-aligned Gaus
   a Gaussian per cluster, weighted by the cluster's share of the samples, at the cluster's
   mean with per-axis width sqrt((c sd_{m,k,a})^2 + f_a^2), sd the cluster's own (maximum
   likelihood) spread; the rule chosen on val in the same way (`components`).
+- either may carry a wide tail (`with_tail`): a further component of weight eps at the
+  scenario's weighted mean with widths lam * sqrt((c sd_all)^2 + f^2), sd_all the spread of
+  all its points, so that a truth outside every kernel or cluster costs -log eps plus a
+  wide Gaussian's NLL instead of a squared distance over a narrow width. The rule is then
+  (c, f_lon, f_lat, eps, lam), eps from `TAIL_WEIGHTS` and lam from `TAIL_WIDTHS` chosen with
+  (c, f) on val; eps = 0 (or a rule of three) is the density without it.
 
 `nll` is -log p(y) in nats (density per m^2). The highest-density region (HDR) of level
 a is {z : p(z) >= t_a} with mass a; `hdr` draws `HDR_DRAWS` positions z from p and
@@ -41,6 +47,8 @@ HORIZON_STEPS = tuple(round(s / constants.DT) - 1 for s in HORIZONS_S)  # future
 LEVELS = (0.5, 0.9, 0.95)  # nominal masses of the reported regions
 BANDWIDTH_GRID_M = tuple(float(h) for h in np.geomspace(0.01, 30.0, 36))  # floors f
 SCALE_GRID = (0.0,) + tuple(float(c) for c in np.geomspace(0.1, 3.0, 15))  # factors c
+TAIL_WEIGHTS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)  # eps of the wide tail
+TAIL_WIDTHS = (3.0, 10.0, 30.0)  # lam: the tail's widths over the scenario's kernel width
 HDR_DRAWS = 256  # Monte Carlo draws per scenario and horizon for u and the areas
 _CHUNK = 256  # scenarios per vectorised block (bounds memory at M x N x G x G)
 
@@ -55,18 +63,29 @@ class HorizonMixture:
   weights: jax.Array
 
 
-def spread(points, weights):
-  """Weighted standard deviation per axis of each scenario's points: (M, N, 2), (M, N) ->
-  (M, 2) m (0 for a point mass)."""
+def moments(points, weights):
+  """Weighted mean and standard deviation per axis of each scenario's points: (M, N, 2),
+  (M, N) -> (M, 2), (M, 2) m (sd 0 for a point mass)."""
   w = weights / jnp.sum(weights, axis=1, keepdims=True)
   mean = jnp.einsum("mn,mna->ma", w, points)
-  return jnp.sqrt(jnp.einsum("mn,mna->ma", w, (points - mean[:, None]) ** 2))
+  return mean, jnp.sqrt(jnp.einsum("mn,mna->ma", w, (points - mean[:, None]) ** 2))
 
 
 def kernel_widths(sd, rule):
-  """Kernel bandwidths sqrt((c sd)^2 + f^2) (m) of rule (c, f_lon, f_lat); sd (..., 2)."""
-  c, floor = rule[0], jnp.asarray(rule[1:], sd.dtype)
+  """Kernel bandwidths sqrt((c sd)^2 + f^2) (m) of rule (c, f_lon, f_lat, ...); sd (..., 2)."""
+  c, floor = rule[0], jnp.asarray(rule[1:3], sd.dtype)
   return jnp.sqrt((c * sd) ** 2 + floor**2)
+
+
+def with_tail(mix: HorizonMixture, centre, sd_all, rule) -> HorizonMixture:
+  """`mix` with the wide tail of rule (c, f_lon, f_lat, eps, lam) (module docstring):
+  centre, sd_all (M, 2) m the mean and spread of all the scenario's points."""
+  eps, lam = rule[3], rule[4]
+  return HorizonMixture(
+      jnp.concatenate([mix.means, centre[:, None]], axis=1),
+      jnp.concatenate([mix.stds, lam * kernel_widths(sd_all, rule)[:, None]], axis=1),
+      jnp.concatenate([(1.0 - eps) * mix.weights, jnp.full_like(mix.weights[:, :1], eps)], axis=1),
+  )
 
 
 def components(dist: WeightedSamples, step: int, labels=None):
@@ -76,7 +95,7 @@ def components(dist: WeightedSamples, step: int, labels=None):
   points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
   weights = jnp.asarray(dist.weights, jnp.float32)
   if labels is None:
-    return points, weights, jnp.broadcast_to(spread(points, weights)[:, None], points.shape)
+    return points, weights, jnp.broadcast_to(moments(points, weights)[1][:, None], points.shape)
   clusters = int(np.max(labels)) + 1
   means, cov = probabilistic.hypothesis_covariances(points, jnp.asarray(labels), clusters, 0.0)
   share = jnp.mean(jax.nn.one_hot(jnp.asarray(labels), clusters, dtype=jnp.float32), axis=1)
@@ -85,13 +104,18 @@ def components(dist: WeightedSamples, step: int, labels=None):
 
 
 def at_horizon(dist, step: int, bandwidth=None, labels=None) -> HorizonMixture:
-  """The density of `dist` at future index `step`; bandwidth: the rule (c, f_lon, f_lat)
-  (module docstring) for `WeightedSamples` (labels: a cluster per point, see `components`),
-  None for a `GaussianMixture`."""
+  """The density of `dist` at future index `step`; bandwidth: the rule (c, f_lon, f_lat[,
+  eps, lam]) (module docstring) for `WeightedSamples` (labels: a cluster per point, see
+  `components`), None for a `GaussianMixture`."""
   if isinstance(dist, GaussianMixture):
     return HorizonMixture(dist.means[:, :, step], dist.stds[:, :, step], dist.weights)
+  rule = tuple(float(v) for v in bandwidth)
   centres, weights, sd = components(dist, step, labels)
-  return HorizonMixture(centres, kernel_widths(sd, tuple(float(v) for v in bandwidth)), weights)
+  mix = HorizonMixture(centres, kernel_widths(sd, rule), weights)
+  if len(rule) < 5 or rule[3] == 0.0:
+    return mix
+  points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
+  return with_tail(mix, *moments(points, jnp.asarray(dist.weights, jnp.float32)), rule)
 
 
 def _component_log_pdf(mix: HorizonMixture, z):
@@ -113,19 +137,30 @@ def nll(mix: HorizonMixture, y):
   return -log_density(mix, jnp.asarray(y)[:, None])[:, 0]
 
 
+def _axis_log_pdf(dev, widths):
+  """log N(dev | 0, widths^2) per axis; dev broadcast against widths."""
+  return -0.5 * (dev / widths) ** 2 - jnp.log(widths) - 0.5 * math.log(2.0 * math.pi)
+
+
 @jax.jit
-def _grid_nll(points, weights, sd, y, valid, scale, grid):
+def _grid_nll(points, weights, sd, centre, sd_all, y, valid, scale, grid, tails):
   """Sum over the valid scenarios of -log p(y) with component widths sqrt((scale sd)^2 +
-  f^2), sd (M, N, 2), for every floor pair (f_lon, f_lat) of grid (G,) -> (G, G)."""
-  dev = y[:, None] - points  # (M, N, 2)
-  widths = jnp.sqrt((scale * sd)[..., None] ** 2 + grid**2)
-  per_axis = (
-      -0.5 * (dev[..., None] / widths) ** 2 - jnp.log(widths) - 0.5 * math.log(2.0 * math.pi)
-  )  # (M, N, 2, G)
+  f^2), sd (M, N, 2), for every floor pair (f_lon, f_lat) of grid (G,) and tail (eps, lam)
+  of tails ((E,), (L,)) -> (G, G, E, L); centre, sd_all (M, 2) as `with_tail`."""
+  eps, lam = tails
+  per_axis = _axis_log_pdf(
+      (y[:, None] - points)[..., None], jnp.sqrt((scale * sd)[..., None] ** 2 + grid**2)
+  )
   joint = per_axis[:, :, 0, :, None] + per_axis[:, :, 1, None, :]  # (M, N, G, G)
   log_w = jnp.log(jnp.maximum(weights, 1e-30))[..., None, None]
-  per = jax.scipy.special.logsumexp(joint + log_w, axis=1)  # (M, G, G)
-  return -jnp.sum(jnp.where(valid[:, None, None], per, 0.0), axis=0)
+  main = jax.scipy.special.logsumexp(joint + log_w, axis=1)  # (M, G, G)
+  base = jnp.sqrt((scale * sd_all)[..., None] ** 2 + grid**2)  # (M, 2, G)
+  tail_axis = _axis_log_pdf((y - centre)[..., None, None], base[..., None] * lam)  # (M, 2, G, L)
+  tail = tail_axis[:, 0, :, None, :] + tail_axis[:, 1, None, :, :]  # (M, G, G, L)
+  per = jnp.logaddexp(
+      jnp.log1p(-eps)[:, None] + main[..., None, None], jnp.log(eps)[:, None] + tail[:, :, :, None]
+  )  # (M, G, G, E, L)
+  return -jnp.sum(jnp.where(valid[:, None, None, None, None], per, 0.0), axis=0)
 
 
 def choose_bandwidth(
@@ -135,28 +170,36 @@ def choose_bandwidth(
     grid=BANDWIDTH_GRID_M,
     scales=SCALE_GRID,
     labels=None,
-) -> tuple[float, float, float]:
-  """The rule (c, f_lon, f_lat) of `scales` x `grid`^2 with the smallest mean NLL of
-  gt[:, step] (call it on val; ties go to the smaller c); labels as `components`."""
+    tails=(TAIL_WEIGHTS, TAIL_WIDTHS),
+) -> tuple[float, float, float, float, float]:
+  """The rule (c, f_lon, f_lat, eps, lam) of `scales` x `grid`^2 x tails (eps values, lam
+  values) with the smallest mean NLL of gt[:, step] (call it on val; ties go to the smaller
+  c, f and eps); labels as `components`."""
   points, weights, sd = (np.asarray(a) for a in components(dist, step, labels))
+  centre, sd_all = (
+      np.asarray(a)
+      for a in moments(
+          jnp.asarray(dist.points, jnp.float32)[:, :, step], jnp.asarray(dist.weights, jnp.float32)
+      )
+  )
   y = np.asarray(gt, np.float32)[:, step]
   grid = jnp.asarray(grid, jnp.float32)
+  tails_arr = tuple(jnp.asarray(t, jnp.float32) for t in tails)
   size = min(_CHUNK, len(y))
   blocks = [
-      (
-          _pad(points[i:j], size),
-          _pad(weights[i:j], size),
-          _pad(sd[i:j], size),
-          _pad(y[i:j], size),
-          jnp.arange(size) < j - i,
-      )
+      tuple(_pad(a[i:j], size) for a in (points, weights, sd, centre, sd_all, y))
+      + (jnp.arange(size) < j - i,)
       for i, j in _blocks(len(y))
   ]
   totals = np.stack(
-      [np.asarray(sum(_grid_nll(*block, jnp.float32(c), grid) for block in blocks)) for c in scales]
-  )  # (C, G, G)
-  c, lon, lat = np.unravel_index(int(np.argmin(totals)), totals.shape)
-  return tuple(round(float(v), 4) for v in (scales[c], grid[lon], grid[lat]))
+      [
+          np.asarray(sum(_grid_nll(*block, jnp.float32(c), grid, tails_arr) for block in blocks))
+          for c in scales
+      ]
+  )  # (C, G, G, E, L)
+  c, lon, lat, e, w = np.unravel_index(int(np.argmin(totals)), totals.shape)
+  values = (scales[c], grid[lon], grid[lat], tails[0][e], tails[1][w])
+  return tuple(round(float(v), 4) for v in values)
 
 
 def _draw(key, mix: HorizonMixture, n: int):

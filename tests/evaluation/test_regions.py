@@ -142,6 +142,54 @@ def test_val_chosen_cluster_rule_approaches_the_true_mixture():
   assert score(cluster, labels) < score(kernel, None)
 
 
+def test_wide_tail_is_the_hand_worked_mixture():
+  """Rule (c, f_lon, f_lat, eps, lam): (1 - eps) x the kernels + eps x N(mean of the points,
+  lam^2 (c^2 sd_all^2 + f^2)) per axis."""
+  points = jnp.asarray([[[[0.0, 1.0]], [[2.0, 1.0]]]])  # lon: mean 1.5, sd sqrt(0.75)
+  dist = WeightedSamples(points, jnp.asarray([[0.25, 0.75]]))
+  rule = (2.0, 0.5, 0.3, 0.1, 10.0)
+  mix = regions.at_horizon(dist, 0, rule)
+  h_lon, h_lat = math.sqrt(4.0 * 0.75 + 0.25), 0.3
+  gauss = lambda dx, dy, sx, sy: math.exp(-0.5 * ((dx / sx) ** 2 + (dy / sy) ** 2)) / (
+      2 * math.pi * sx * sy
+  )
+  y = np.array([[9.0, -2.0]])
+  kernels = 0.25 * gauss(9.0, -3.0, h_lon, h_lat) + 0.75 * gauss(7.0, -3.0, h_lon, h_lat)
+  want = -math.log(0.9 * kernels + 0.1 * gauss(7.5, -3.0, 10 * h_lon, 10 * h_lat))
+  np.testing.assert_allclose(np.asarray(regions.nll(mix, y)), [want], rtol=1e-5)
+  np.testing.assert_allclose(np.asarray(mix.weights).sum(), 1.0, rtol=1e-6)
+  no_tail = regions.at_horizon(dist, 0, rule[:3] + (0.0, 10.0))
+  np.testing.assert_array_equal(np.asarray(no_tail.means), np.asarray(points[:, :, 0]))
+
+
+def test_val_chosen_tail_pays_off_when_the_truth_leaves_the_samples():
+  """Samples of N(0, I) while 5 % of truths lie 8 m away: val picks a tail (eps > 0), which
+  lowers the NLL of fresh scenarios by more than 0.3 nats; without outliers whatever it
+  picks costs fresh scenarios less than 0.02 nats."""
+  rng = np.random.default_rng(6)
+  m, n = 400, 64
+
+  def draw(outliers):
+    samples = rng.normal(size=(m, n, 1, 2)).astype(np.float32)
+    y = rng.normal(size=(m, 1, 2)) + outliers * (rng.uniform(size=(m, 1, 1)) < 0.05) * 8.0
+    return WeightedSamples.uniform(jnp.asarray(samples)), y
+
+  grid, cs = tuple(np.geomspace(0.05, 2.0, 8)), (0.0, 0.5, 1.0)
+  (val, val_y), (test, test_y) = draw(1.0), draw(1.0)
+  rule = regions.choose_bandwidth(val, val_y, 0, grid, cs)
+  plain = regions.choose_bandwidth(val, val_y, 0, grid, cs, tails=((0.0,), (3.0,)))
+  score = lambda r: float(np.mean(regions.nll(regions.at_horizon(test, 0, r), test_y[:, 0])))
+  assert rule[3] > 0.0
+  assert score(plain) - score(rule) > 0.3
+  (clean, clean_y), (fresh, fresh_y) = draw(0.0), draw(0.0)
+  clean_score = lambda r: float(
+      np.mean(regions.nll(regions.at_horizon(fresh, 0, r), fresh_y[:, 0]))
+  )
+  with_tail = regions.choose_bandwidth(clean, clean_y, 0, grid, cs)
+  without = regions.choose_bandwidth(clean, clean_y, 0, grid, cs, tails=((0.0,), (3.0,)))
+  assert clean_score(with_tail) - clean_score(without) < 0.02
+
+
 def test_mixture_at_horizon_is_its_exact_density():
   rng = np.random.default_rng(0)
   gm = GaussianMixture(
@@ -161,7 +209,8 @@ def test_point_mass_bandwidth_recovers_the_error_spread():
   rng = np.random.default_rng(1)
   gt = rng.normal(size=(4000, 1, 2)) * np.array([2.0, 0.5])
   dist = WeightedSamples.point_mass(jnp.zeros((4000, 1, 2)))
-  c, lon, lat = regions.choose_bandwidth(dist, gt, 0)
+  c, lon, lat, eps, _ = regions.choose_bandwidth(dist, gt, 0, scales=(0.0, 0.5, 1.0))
+  assert eps == 0.0  # Gaussian errors: no tail pays for its weight
   assert c == 0.0  # a point mass has no spread: every c ties, the smallest is taken
   grid = np.asarray(regions.BANDWIDTH_GRID_M)
   nearest = lambda s: grid[np.argmin(np.abs(np.log(grid / s)))]
