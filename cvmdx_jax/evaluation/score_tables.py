@@ -16,6 +16,9 @@ METHOD_TITLES = {
     "mlp_most_likely": "MLP, 3 heads (WTA): most likely",
     "mlp_mean": "MLP, 3 heads (WTA): probability-weighted mean",
     "mlp_best_of_k": "MLP, 3 heads (WTA): best of K",
+    # the mixture density network (`mdn_rows`), given its run
+    "mdn_mean": "MDN, 3 Gaussian modes: mixture mean",
+    "mdn_best_of_k": "MDN, 3 Gaussian modes: best of K",
 }
 # Paper, Table II (highD): ADE / FDE@5s in metres.
 PAPER_HIGHD = {

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.data.scenarios import Scenarios
-from cvmdx_jax.evaluation import learned_baseline, score_tables, scoring
+from cvmdx_jax.evaluation import learned_baseline, mdn_rows, score_tables, scoring
 from cvmdx_jax.inference.sampling import Prediction
 from cvmdx_jax.multimodal.hypotheses import Hypotheses
 
@@ -228,3 +228,9 @@ def test_markdown_tables_show_the_probabilistic_scores():
   text = score_tables.markdown_tables(results)
   row = next(line for line in text.splitlines() if line.startswith("| kl | 1 | 0.50"))
   assert [c.strip() for c in row.split("|")[4:7]] == ["1.00", "0.700", "1.49"]
+
+
+def test_every_row_a_report_can_hold_has_a_title():
+  rows = scoring.METHODS + learned_baseline.METHODS + mdn_rows.METHODS
+  assert set(rows) <= set(score_tables.METHOD_TITLES)
+  assert len(set(score_tables.METHOD_TITLES.values())) == len(score_tables.METHOD_TITLES)
