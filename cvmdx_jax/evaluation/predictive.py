@@ -6,6 +6,8 @@ cvmdx_hypotheses  cVMDx's K hypotheses with their probabilities (what users get)
 mlp_heads         the WTA MLP's heads with their p (`inference.bundles.LearnedBaseline`)
 mdn               the mixture density network (exact density; sampled for the energy
                   score); K-set: its mode means with their weights
+mdn_modes         the MDN's mode means with their weights (its heads: what a user of it
+                  gets as hypotheses, beside cVMDx's)
 cv, ca            constant velocity, constant acceleration + yaw rate (point masses)
 """
 
@@ -21,6 +23,7 @@ TITLES = {
     "cvmdx_hypotheses": "cVMDx, K hypotheses + p(c)",
     "mlp_heads": "MLP, 3 heads (WTA) + p",
     "mdn": "MDN, 3 Gaussian modes",
+    "mdn_modes": "MDN, 3 mode means + weights",
     "cv": "Constant velocity",
     "ca": "Constant acceleration + yaw rate",
 }
@@ -66,6 +69,7 @@ def mlp_model(baseline, output, scenarios) -> Model:
   return Model("mlp_heads", heads, k_set=heads)
 
 
-def mdn_model(mixture: GaussianMixture) -> Model:
-  """The MDN's mixture; its K-set is its mode means with their weights."""
-  return Model("mdn", mixture, k_set=_k_set(mixture.means, mixture.weights))
+def mdn_models(mixture: GaussianMixture) -> list:
+  """The MDN's mixture and its mode means with their weights (a K-set of both)."""
+  modes = _k_set(mixture.means, mixture.weights)
+  return [Model("mdn", mixture, k_set=modes), Model("mdn_modes", modes, k_set=modes)]

@@ -45,7 +45,7 @@ def _models(predictor, baseline, mdn_fn, scenarios, seed: int) -> list:
   if baseline is not None:
     models.append(predictive.mlp_model(baseline, out, scenarios))
   if mdn_fn is not None:
-    models.append(predictive.mdn_model(mdn_fn(out, scenarios)))
+    models += predictive.mdn_models(mdn_fn(out, scenarios))
   return models, np.asarray(out.delta)
 
 

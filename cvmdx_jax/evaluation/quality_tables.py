@@ -14,6 +14,7 @@ from cvmdx_jax.evaluation import intervals, predictive, regions
 SUBSETS = ("all",) + constants.CLASS_NAMES
 LEARNED = ("mlp_heads", "mdn")
 BASELINES = ("cv", "ca") + LEARNED
+HEADS = ("mlp_heads", "mdn_modes", "mdn")  # what cVMDx's K hypotheses are compared with
 PC_MODELS = ("cvmdx_hypotheses",) + LEARNED  # K-sets with probabilities of their own
 _SUMMARY = (
     ("energy_score", "ES [m]"),
@@ -77,7 +78,7 @@ def comparisons(models) -> list:
         ("cvmdx_samples", b, metric, "all", "mean")
         for metric in ("energy_score", "nll_1s", "nll_3s", "nll_5s")
     ]
-  for b in (m for m in LEARNED if m in models):
+  for b in (m for m in HEADS if m in models):
     rows += [
         ("cvmdx_hypotheses", b, metric, "all", "mean")
         for metric in ("energy_score", "brier_min_fde", "min_fde")
