@@ -88,12 +88,16 @@ def with_tail(mix: HorizonMixture, centre, sd_all, rule) -> HorizonMixture:
   )
 
 
+def _at_step(dist: WeightedSamples, step: int):
+  """The points (M, N, 2) at future index `step` and their weights (M, N), float32."""
+  return jnp.asarray(dist.points, jnp.float32)[:, :, step], jnp.asarray(dist.weights, jnp.float32)
+
+
 def components(dist: WeightedSamples, step: int, labels=None):
   """Centres (M, K, 2), weights (M, K) and spreads sd (M, K, 2) of the density's components
   at `step`: every point with the scenario's spread, or (labels (M, N) int, the cluster of
   each point) every cluster's mean, share and own spread (module docstring)."""
-  points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
-  weights = jnp.asarray(dist.weights, jnp.float32)
+  points, weights = _at_step(dist, step)
   if labels is None:
     return points, weights, jnp.broadcast_to(moments(points, weights)[1][:, None], points.shape)
   clusters = int(np.max(labels)) + 1
@@ -114,8 +118,7 @@ def at_horizon(dist, step: int, bandwidth=None, labels=None) -> HorizonMixture:
   mix = HorizonMixture(centres, kernel_widths(sd, rule), weights)
   if len(rule) < 5 or rule[3] == 0.0:
     return mix
-  points = jnp.asarray(dist.points, jnp.float32)[:, :, step]
-  return with_tail(mix, *moments(points, jnp.asarray(dist.weights, jnp.float32)), rule)
+  return with_tail(mix, *moments(*_at_step(dist, step)), rule)
 
 
 def _component_log_pdf(mix: HorizonMixture, z):
@@ -176,12 +179,7 @@ def choose_bandwidth(
   values) with the smallest mean NLL of gt[:, step] (call it on val; ties go to the smaller
   c, f and eps); labels as `components`."""
   points, weights, sd = (np.asarray(a) for a in components(dist, step, labels))
-  centre, sd_all = (
-      np.asarray(a)
-      for a in moments(
-          jnp.asarray(dist.points, jnp.float32)[:, :, step], jnp.asarray(dist.weights, jnp.float32)
-      )
-  )
+  centre, sd_all = (np.asarray(a) for a in moments(*_at_step(dist, step)))
   y = np.asarray(gt, np.float32)[:, step]
   grid = jnp.asarray(grid, jnp.float32)
   tails_arr = tuple(jnp.asarray(t, jnp.float32) for t in tails)
