@@ -37,7 +37,7 @@ from cvmdx_jax.data import highd
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.evaluation import metrics
 from cvmdx_jax.inference import recording
-from cvmdx_jax.inference.predictor import Predictor
+from cvmdx_jax.inference.predictor import SAMPLES_PER_CALL, SCENARIOS_PER_CALL, Predictor
 from cvmdx_jax.storage import atomic, checksums, identity
 
 _TOKENIZER = flags.DEFINE_string("tokenizer_dir", None, "Tokeniser run directory.")
@@ -68,8 +68,8 @@ _SEED = flags.DEFINE_integer("seed", 0, "Sampling seed.", lower_bound=0, upper_b
 _CHUNK = flags.DEFINE_integer(
     "chunk_size",
     None,
-    "Vehicle-frames per jitted call (default: 256, fewer where their samples would exceed "
-    "2,304 trajectories a call).",
+    f"Vehicle-frames per jitted call (default: {SCENARIOS_PER_CALL}, fewer where "
+    f"their samples would exceed {SAMPLES_PER_CALL:,} trajectories a call).",
     lower_bound=1,
 )
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")
