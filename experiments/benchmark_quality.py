@@ -19,7 +19,8 @@ validation recordings (`--val_recordings` of the val ranges and `--val_ood_recor
 the val_ood road, SUMO seed `--cal_sumo_seed`, cached in `<workdir>/cal_data`, class-balanced
 subsets of `--max_calibration` each), pooled; densities are chosen on the run's own val.
 cVMDx's predictions are cached in `<workdir>/predictions/<run>_<key>.npz`, the key a hash of
-the scenarios' inputs and the seed: a later call (another density, more runs) reuses them.
+the model (checkpoints and sampling settings), the scenarios' inputs and the seed: a later
+call (another density, more runs) reuses them, a retrained run or other settings do not.
 """
 
 from cvmdx_jax import cli  # first: a signal during the imports below is one line
@@ -114,7 +115,9 @@ def _subset(scenarios, size: int):
 
 def _score_run(run: Path, large: dict, calibration, workdir: Path, log):
   predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
-  predict = prediction_cache.cached(predictor, workdir / "predictions", run.name)
+  predict = prediction_cache.cached(
+      predictor, workdir / "predictions", run.name, prediction_cache.model_id(predictor)
+  )
   baseline = None
   if (run / "baseline").is_dir():
     baseline = load_baseline(run / "baseline")
@@ -182,6 +185,9 @@ def _files(workdir: Path, runs: dict, build_s: float, seconds: dict) -> dict:
       "## Calibrated 90 % regions",
       "",
       quality_tables.calibration_table(runs, SCORED),
+      "## Online 90 % regions (adaptive conformal, truths as they arrive)",
+      "",
+      quality_tables.online_table(runs, SCORED),
       "## Hypothesis sets of p(c) at 0.9",
       "",
       quality_tables.hypothesis_set_table(runs, SCORED),

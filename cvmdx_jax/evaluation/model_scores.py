@@ -77,12 +77,16 @@ def _energy_scores(model: Model, gt, key) -> np.ndarray:
   return np.concatenate([np.asarray(a) for a in out])
 
 
-def scenario_scores(model: Model, gt, bandwidths, key: jax.Array, extra_levels=None) -> dict:
+def scenario_scores(
+    model: Model, gt, bandwidths, key: jax.Array, extra_levels=None, online=None
+) -> dict:
   """Per-scenario scores (module docstring) of `model` against gt (M, 125, 2).
 
   bandwidths: `choose_bandwidths` of the same model on val. extra_levels: per horizon an
   (M, E) array of further region masses per scenario (calibrated levels), whose areas come
-  back as `area_x<j>_<s>s` from the same draws.
+  back as `area_x<j>_<s>s` from the same draws. online: (horizon index, u (M,)) -> (M,)
+  levels that depend on the scores (`conformal.online_levels`), returned as
+  `online_level_<s>s` with their areas `online_area_<s>s` from the same draws.
   """
   gt = np.asarray(gt, np.float32)
   es_key, hdr_key = jax.random.split(key)
@@ -98,6 +102,11 @@ def scenario_scores(model: Model, gt, bandwidths, key: jax.Array, extra_levels=N
     )
     u, area = regions.hdr(jax.random.fold_in(hdr_key, s), mix, gt[:, step], levels)
     out[f"hdr_u_{s}s"] = u
+    if online is not None:
+      out[f"online_level_{s}s"] = online(i, u)
+      out[f"online_area_{s}s"] = regions.hdr(
+          jax.random.fold_in(hdr_key, s), mix, gt[:, step], out[f"online_level_{s}s"][:, None]
+      )[1][:, 0]
     for j in range(area.shape[1]):
       tag = (
           f"{round(100 * regions.LEVELS[j])}"

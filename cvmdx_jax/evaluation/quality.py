@@ -14,6 +14,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from cvmdx_jax import constants
 from cvmdx_jax.evaluation import conformal, metrics, model_scores, predictive, regions
 
 CALIBRATION_LEVEL = 0.9  # the region level calibrated and reported with and without delta
@@ -28,9 +29,10 @@ class RunScores:
       on val (`regions`).
     levels: {model: {"plain": (5,) calibrated levels per horizon, "delta": (3, 5) per delta
       tercile}} of `CALIBRATION_LEVEL`, and {"pc": threshold} for the K-set models.
-    splits: {split: {"meta": {recording_id, track_id, label, delta} (M,),
+    splits: {split: {"meta": {recording_id, track_id, frame, label, delta} (M,),
       model: {score: (M,)}}}; region scores also `cal_cover_<s>s`, `cal_area_<s>s`,
-      `delta_cover_<s>s`, `delta_area_<s>s` (calibrated 90 % regions), and for K-sets
+      `delta_cover_<s>s`, `delta_area_<s>s` (calibrated 90 % regions), `online_level_<s>s`,
+      `online_cover_<s>s`, `online_area_<s>s` (online 90 % regions, `conformal`), and for K-sets
       `pc_cover`, `pc_size` (raw 0.9 threshold) and `pc_cal_cover`, `pc_cal_size`.
   """
 
@@ -86,12 +88,43 @@ def _scenario_levels(levels, delta):
   ]
 
 
+def stream_times(scenarios) -> tuple[np.ndarray, int]:
+  """(M,) times in frames on one clock, and the frames a truth takes per second of horizon:
+  the recordings one after another (by id), each after the last one's truths are known.
+  Where a frame is unknown (-1): the scenarios' order, each truth known before the next."""
+  frame = np.asarray(scenarios.frame, np.int64)
+  if len(frame) == 0 or np.any(frame < 0):
+    return np.arange(len(frame)), 0
+  recording = np.unique(np.asarray(scenarios.recording_id), return_inverse=True)[1]
+  return recording * (int(frame.max()) + constants.T_PRED + 1) + frame, constants.FRAME_RATE_HZ
+
+
+def _online(levels, scenarios):
+  """`model_scores.scenario_scores`' online levels: adaptive conformal from the plain
+  calibrated level, with the truth at horizon s known s seconds after the prediction."""
+  times, per_s = stream_times(scenarios)
+
+  def levels_at(i, u):
+    start = float(levels["plain"][i])
+    return conformal.online_levels(
+        u,
+        times,
+        per_s * regions.HORIZONS_S[i],
+        start,
+        CALIBRATION_LEVEL,
+        conformal.aci_gamma(start, len(u)),
+    )
+
+  return levels_at
+
+
 def _score(model, bandwidths, levels, scenarios, delta, key) -> dict:
-  """`model_scores.scenario_scores` plus coverage and area of the calibrated regions and
-  the p(c) sets, per scenario."""
+  """`model_scores.scenario_scores` plus coverage and area of the calibrated regions (split
+  conformal, per delta tercile, online) and the p(c) sets, per scenario."""
   gt = np.asarray(scenarios.future, np.float32)
   per = _scenario_levels(levels, delta)
-  out = model_scores.scenario_scores(model, gt, bandwidths, key, extra_levels=per)
+  online = _online(levels, scenarios) if len(gt) * conformal.ACI_TOLERANCE > 1 else None
+  out = model_scores.scenario_scores(model, gt, bandwidths, key, extra_levels=per, online=online)
   for i, s in enumerate(regions.HORIZONS_S):
     u = out[f"hdr_u_{s}s"]
     out.update(
@@ -102,6 +135,8 @@ def _score(model, bandwidths, levels, scenarios, delta, key) -> dict:
             f"delta_area_{s}s": out.pop(f"area_x1_{s}s"),
         }
     )
+    if online is not None:
+      out[f"online_cover_{s}s"] = (u <= out[f"online_level_{s}s"]).astype(float)
   if "pc" in levels:
     scores = conformal.hypothesis_scores(model.k_set.weights, _closest(model, gt))
     for tag, threshold in (("pc", CALIBRATION_LEVEL), ("pc_cal", levels["pc"])):
@@ -166,6 +201,7 @@ def evaluate_run(
     models, delta = _models(predictor, baseline, mdn_fn, scenarios, seed)
     meta = {
         "recording_id": np.asarray(scenarios.recording_id),
+        "frame": np.asarray(scenarios.frame),
         "track_id": np.asarray(scenarios.track_id),
         "label": np.asarray(scenarios.label),
         "delta": delta,

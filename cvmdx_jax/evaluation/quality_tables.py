@@ -206,3 +206,33 @@ def hypothesis_set_table(runs: dict, splits) -> str:
           + " |"
       )
   return "\n".join(lines) + "\n"
+
+
+def online_table(runs: dict, splits) -> str:
+  """Coverage of the online 90 % regions (`conformal.online_levels`) at 1..5 s, lowest and
+  highest over seeds, and their mean area at 5 s beside the split-conformal one."""
+  h = regions.HORIZONS_S
+  lines = [
+      "| model | split | "
+      + " | ".join(f"online {s} s" for s in h)
+      + " | area 5 s cal / online [m^2] |",
+      "|---|---|" + "---|" * (len(h) + 1),
+  ]
+  first = next(iter(runs.values())).splits
+  for model in (m for m in first[splits[0]] if m != "meta"):
+    for split in splits:
+      if "online_cover_5s" not in first[split][model]:
+        continue
+      per_seed = lambda k: [value(r.splits[split][model], k) for r in runs.values()]
+      span = lambda k: "-".join(
+          dict.fromkeys(_fmt(v, "{:.3f}") for v in (min(per_seed(k)), max(per_seed(k))))
+      )
+      areas = " / ".join(
+          _fmt(float(np.mean(per_seed(k))), "{:.1f}") for k in ("cal_area_5s", "online_area_5s")
+      )
+      lines.append(
+          f"| {predictive.TITLES.get(model, model)} | {split} | "
+          + " | ".join(span(f"online_cover_{s}s") for s in h)
+          + f" | {areas} |"
+      )
+  return "\n".join(lines) + "\n"

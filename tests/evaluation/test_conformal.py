@@ -1,6 +1,7 @@
 """Split-conformal levels and hypothesis sets: hand-worked cases and the coverage guarantee."""
 
 import numpy as np
+import pytest
 
 from cvmdx_jax.evaluation import conformal
 
@@ -33,3 +34,45 @@ def test_hypothesis_scores_and_sets():
   np.testing.assert_allclose(conformal.hypothesis_scores(probs, np.array([2, 1])), [0.8, 1.0])
   np.testing.assert_array_equal(conformal.hypothesis_set_size(probs, 0.75), [2, 2])
   np.testing.assert_array_equal(conformal.hypothesis_set_size(probs, 0.5), [1, 1])
+
+
+def test_online_levels_hand_worked_with_delay():
+  # times 0, 1, 2, 3; delay 2: scenario 0's miss arrives at 2, scenario 1's at 3
+  u = np.array([0.95, 0.5, 0.2, 0.99])
+  levels = conformal.online_levels(u, [0, 1, 2, 3], 2, 0.9, 0.9, 0.1)
+  # 0: 0.9 (u 0.95 misses); 1: 0.9 (covered); 2: 0.9 + 0.1 (1 - 0.1) = 0.99;
+  # 3: 0.99 + 0.1 (0 - 0.1) = 0.98
+  np.testing.assert_allclose(levels, [0.9, 0.9, 0.99, 0.98])
+  # the input's order is kept when times are shuffled
+  perm = np.array([2, 0, 3, 1])
+  np.testing.assert_allclose(
+      conformal.online_levels(u[perm], np.arange(4)[perm], 2, 0.9, 0.9, 0.1), levels[perm]
+  )
+
+
+def test_online_levels_are_capped_and_constant_without_step():
+  u = np.ones(50)
+  np.testing.assert_allclose(conformal.online_levels(u, np.arange(50), 0, 0.8, 0.9, 0.0), 0.8)
+  assert conformal.online_levels(u, np.arange(50), 0, 0.8, 0.9, 0.5).max() == conformal.LEVEL_CAP
+
+
+def test_aci_gamma_meets_its_bound():
+  gamma = conformal.aci_gamma(0.93, 3000)
+  assert abs((0.93 + gamma) / (gamma * 3000) - conformal.ACI_TOLERANCE) < 1e-12
+  with pytest.raises(ValueError, match="cannot bound"):
+    conformal.aci_gamma(0.9, 50)
+
+
+@pytest.mark.parametrize("delay", [0, 40])
+def test_online_levels_recover_coverage_on_a_shifted_stream(delay):
+  # calibrated where u is uniform; the stream's scores are larger (a harder road) and drift
+  rng = np.random.default_rng(2)
+  start = conformal.calibrated_level(rng.uniform(size=2000), 0.9)
+  m = 3000
+  u = rng.beta(1.0, 0.4 + 0.4 * np.linspace(0, 1, m))  # P(u <= start) ~0.6-0.75
+  assert np.mean(u <= start) < 0.8
+  levels = conformal.online_levels(
+      u, np.arange(m), delay, start, 0.9, conformal.aci_gamma(start, m)
+  )
+  # the bound holds without delay; a delay of 40 scenarios costs little more here
+  assert abs(np.mean(u <= levels) - 0.9) <= conformal.ACI_TOLERANCE + 0.005 * (delay > 0)

@@ -2,8 +2,10 @@
 
 import types
 
+import ml_collections
 import numpy as np
 
+from cvmdx_jax.config.sampling import SamplingConfig
 from cvmdx_jax.evaluation import prediction_cache
 
 
@@ -29,7 +31,7 @@ def _fake_predictor(calls):
 def test_cache_predicts_once_per_inputs_and_seed(tmp_path):
   calls = []
   fake = _fake_predictor(calls)
-  cached = prediction_cache.cached(fake, tmp_path / "predictions", "run")
+  cached = prediction_cache.cached(fake, tmp_path / "predictions", "run", "model-a")
   xi = np.random.default_rng(0).normal(size=(3, 9, 75, 4)).astype(np.float32)
   scen = types.SimpleNamespace(xi=xi, mask=np.ones(xi.shape[:3], bool))
   first = cached(scen, 0)
@@ -47,4 +49,22 @@ def test_cache_predicts_once_per_inputs_and_seed(tmp_path):
   other = types.SimpleNamespace(xi=xi + 1.0, mask=scen.mask)
   cached(other, 0)
   assert calls == [0, 0, 1, 0]  # `want` above, then a new seed and new inputs predict
-  assert len(list((tmp_path / "predictions").glob("run_*.npz"))) == 3
+  prediction_cache.cached(fake, tmp_path / "predictions", "run", "model-b")(scen, 0)
+  assert calls == [0, 0, 1, 0, 0]  # another model (retrained, other sampling) predicts
+  assert len(list((tmp_path / "predictions").glob("run_*.npz"))) == 4
+
+
+def test_model_id_follows_checkpoints_and_sampling():
+  def predictor(params_id="t1", weight=1.0, steps=2):
+    return types.SimpleNamespace(
+        tokenizer=types.SimpleNamespace(
+            checkpoint=ml_collections.FrozenConfigDict({"params_id": params_id, "step": 5})
+        ),
+        denoiser=types.SimpleNamespace(params={"w": np.full((2, 3), weight, np.float32)}),
+        sampling=SamplingConfig(steps=steps),
+    )
+
+  base = prediction_cache.model_id(predictor())
+  assert prediction_cache.model_id(predictor()) == base
+  for changed in (predictor(params_id="t2"), predictor(weight=1.5), predictor(steps=3)):
+    assert prediction_cache.model_id(changed) != base

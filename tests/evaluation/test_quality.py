@@ -87,6 +87,8 @@ def test_true_distribution_wins_and_calibrated_regions_cover():
   row = runs["r0"].splits["test"]["cvmdx_samples"]
   for s in (1, 3, 5):
     assert abs(np.mean(row[f"cal_cover_{s}s"]) - 0.9) < 0.06
+    assert abs(np.mean(row[f"online_cover_{s}s"]) - 0.9) < 0.03  # the bound: 0.02 + delay 0
+    assert np.all(row[f"online_area_{s}s"] > 0)
   diffs = {
       (d["a"], d["b"], d["metric"], d["subset"]): d
       for d in quality_tables.differences(runs, "test")
@@ -98,3 +100,18 @@ def test_true_distribution_wins_and_calibrated_regions_cover():
       list(diffs.values())
   )
   assert "cVMDx, N samples" in quality_tables.calibration_table(runs, ["test"])
+  assert "| cVMDx, N samples | test | " in quality_tables.online_table(runs, ["test"])
+
+
+def test_stream_times_put_recordings_one_after_another():
+  scen = types.SimpleNamespace(
+      recording_id=np.array([7, 3, 7, 3]), frame=np.array([10, 500, 0, 20])
+  )
+  times, per_s = quality.stream_times(scen)
+  assert per_s == constants.FRAME_RATE_HZ
+  # recording 3 first; recording 7 starts after 500 + every truth of recording 3
+  assert list(np.argsort(times)) == [3, 1, 2, 0]
+  assert times[2] - times[1] > constants.T_PRED
+  unknown = types.SimpleNamespace(recording_id=np.array([1, 1]), frame=np.array([-1, 4]))
+  np.testing.assert_array_equal(quality.stream_times(unknown)[0], [0, 1])
+  assert quality.stream_times(unknown)[1] == 0
