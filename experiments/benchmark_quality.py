@@ -11,7 +11,8 @@ class on each. Then, per trained run (a `make demo` directory with data/, tokeni
 (`evaluation.predictive`) with the same proper scores (`evaluation.model_scores`):
 settings (kernel rules: `evaluation.regions`) chosen on the run's own val split,
 scored on the new test and test_ood sets and on the run's val_ood. Writes
-`<workdir>/quality.md` (tables with vehicle-bootstrap intervals),
+`<workdir>/quality.md` (tables with vehicle-bootstrap intervals; split-conformal and online
+regions),
 `quality.json`, `scores_<run>_<split>.npz` (every model's per-scenario scores, written as
 each run is scored; `--reuse` takes them instead of scoring that run again),
 `bandwidths_<run>.json` and `region_reliability_<split>.png`. Regions are calibrated on new

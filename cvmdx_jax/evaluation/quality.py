@@ -5,8 +5,10 @@ sets, with settings chosen on val and regions calibrated on validation scenarios
 calibration scenarios, then on each evaluated split; on val it chooses each model's kernel
 rules (`model_scores`), on the calibration scenarios (validation scenarios not used for
 anything else; val itself where none are given) it calibrates each model's region levels
-per horizon (`conformal`, plain and per delta tercile) and its p(c) threshold. It returns
-plain data (`RunScores`); `quality_tables` renders it.
+per horizon (`conformal`, plain and per delta tercile) and its p(c) threshold; on each
+evaluated split the online levels start from the plain ones and follow the split's truths
+in time order (`stream_times`, `conformal.online_levels`). It returns plain data
+(`RunScores`); `quality_tables` renders it.
 """
 
 import dataclasses
