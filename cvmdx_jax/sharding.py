@@ -2,8 +2,10 @@
 
 One 1-D mesh with axis "data": model state is replicated on every device, batches are
 split along their leading (example) dimension. Training and batched inference both use
-it; on CPU, `XLA_FLAGS=--xla_force_host_platform_device_count=N` (set before jax is
-imported) gives N devices to test with.
+it; on CPU, `XLA_FLAGS=--xla_force_host_platform_device_count=N` (set before jax starts)
+gives N devices: `use_host_devices` sets it. One device per core predicts faster than one
+device on all of them (a frame of 30 vehicles on 2 cores: docs/benchmarks.md); the outputs
+equal one device's to float rounding (a device's batch is another size).
 
 Several processes (hosts): `initialize_distributed` (`distributed.launch`, re-exported here)
 joins a `jax.distributed` run described by the environment (JAX_* variables, or the
@@ -15,6 +17,8 @@ process compare its run's identity with process 0's before any work.
 """
 
 import json
+import os
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -37,6 +41,7 @@ from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import identity
 
 DATA_AXIS = "data"
+HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
 
 __all__ = [
     "DATA_AXIS",
@@ -59,6 +64,7 @@ __all__ = [
     "replicate",
     "replicated",
     "shard_batch",
+    "use_host_devices",
 ]
 
 
@@ -194,3 +200,31 @@ def pad_batch(batch: Any, multiple: int) -> tuple[Any, np.ndarray]:
   extra = np.arange(pad) % n
   padded = jax.tree.map(lambda x: np.concatenate([np.asarray(x), np.asarray(x)[extra]]), batch)
   return padded, weight
+
+
+def use_host_devices(count: int) -> None:
+  """Makes this process's CPU `count` JAX devices (through XLA_FLAGS); the data mesh then
+  splits a batch over them. Call before JAX's first computation.
+
+  Raises:
+    UserError: count < 1, XLA_FLAGS already sets another count, or JAX started before the
+      call (count > 1).
+  """
+  if count < 1:
+    raise UserError(f"host devices: {count}, expected at least 1")
+  xla_flags = os.environ.get("XLA_FLAGS", "")
+  found = re.search(rf"{HOST_DEVICES_FLAG}=(\d+)", xla_flags)
+  if found and int(found.group(1)) != count:
+    raise UserError(
+        f"XLA_FLAGS sets {HOST_DEVICES_FLAG}={found.group(1)}, which contradicts {count} "
+        "host devices: set one of them"
+    )
+  if found or count == 1:  # XLA's own count (1) or the one XLA_FLAGS sets: JAX not started
+    return
+  os.environ["XLA_FLAGS"] = f"{xla_flags} {HOST_DEVICES_FLAG}={count}".strip()
+  have = len(jax.devices("cpu"))
+  if have != count:
+    raise UserError(
+        f"JAX started with {have} CPU devices before {count} host devices were asked for: "
+        "ask before the first computation"
+    )

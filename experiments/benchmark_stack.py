@@ -8,7 +8,9 @@ frame per call, and the first call of the exported artefact against the package'
    is its 3 s of history and its neighbours', whatever the frame) predicted by one
    `Predictor` call (chunk = the frame) with each of --samples (default the paper's 9 and
    the demo's 64): first call (trace + compile + run), then median and p90 of --calls warm
-   calls, end to end (input checks, transfers, numpy outputs).
+   calls, end to end (input checks, transfers, numpy outputs). Once per CPU device count
+   of --host_devices (`sharding.use_host_devices`: the frame's vehicles split over them),
+   each in a fresh process, one after the other: the ratio of medians against the first.
 2. Where the time goes for the first of --samples, each part jitted alone on the same
    frame: tokeniser (+ ego features), sampler (the U-Net evaluations), vehicle motion model,
    hypotheses (medians of --calls calls; the sum differs from the whole by fusion).
@@ -39,7 +41,7 @@ import jax
 import numpy as np
 from absl import flags
 
-from cvmdx_jax import ego_motion, vmm
+from cvmdx_jax import ego_motion, sharding, vmm
 from cvmdx_jax.data import dataset
 from cvmdx_jax.inference import export
 from cvmdx_jax.inference.predictor import Predictor
@@ -59,11 +61,13 @@ _RUNS = flags.DEFINE_integer(
     lower_bound=0,
 )
 _OUT = flags.DEFINE_string("out", None, "JSON file of the results (none: print only).")
+_HOST = flags.DEFINE_list("host_devices", ["1", "2"], "CPU device counts of part 1, side by side.")
 _CHILD = flags.DEFINE_enum(
     "child",
     None,
-    ["package", "exported"],
-    "Internal: time one first " "call in this process and print it as JSON.",
+    ["package", "exported", "frame"],
+    "Internal: time one first call (package, exported) or part 1 on the first of "
+    "--host_devices (frame) in this process and print it as JSON.",
 )
 _EXPORT_DIR = flags.DEFINE_string("export_dir", None, "Internal: the artefacts of --child.")
 flags.mark_flags_as_required(["tokenizer_dir", "diffusion_dir", "data_dir"])
@@ -137,6 +141,41 @@ def parts(predictor: Predictor, scenarios, calls: int) -> dict:
   return ms
 
 
+def frame_times(samples) -> dict:
+  """{n: `call_times` of the frame with n samples a vehicle} (module docstring, 1)."""
+  base = Predictor.load(_TOKENIZER.value, _DIFFUSION.value)
+  scenarios = frame(_DATA.value, _VEHICLES.value)
+  return {
+      n: call_times(
+          lambda p=with_samples(base, n, _VEHICLES.value): p(scenarios, seed=0).prediction.mean,
+          _CALLS.value,
+      )
+      for n in samples
+  }
+
+
+def frames_by_devices(samples) -> list:
+  """[{"host_devices": count, "samples": `frame_times`}] per --host_devices, each in a
+  fresh process (a count may repeat: runs alternated)."""
+  results = []
+  for count in (int(c) for c in _HOST.value):
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child=frame",
+        f"--host_devices={count}",
+        *(
+            f"--{f}={getattr(flags.FLAGS, f)}"
+            for f in ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles", "calls")
+        ),
+        f"--samples={','.join(str(n) for n in samples)}",
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    rows = json.loads(done.stdout.strip().splitlines()[-1])
+    results.append({"host_devices": count, "samples": {int(n): r for n, r in rows.items()}})
+  return results
+
+
 def child(kind: str) -> dict:
   """One first call in this fresh process (module docstring, 3), seconds."""
   scenarios = frame(_DATA.value, _VEHICLES.value)
@@ -181,6 +220,10 @@ def first_calls(predictor: Predictor, runs: int) -> dict:
 
 def main(argv):
   del argv
+  if _CHILD.value == "frame":
+    sharding.use_host_devices(int(_HOST.value[0]))
+    print(json.dumps(frame_times([int(s) for s in _SAMPLES.value])))
+    return
   if _CHILD.value:
     print(json.dumps(child(_CHILD.value)))
     return
@@ -194,16 +237,16 @@ def main(argv):
       "vehicles": _VEHICLES.value,
       "calls": _CALLS.value,
       "sampler": f"{base.sampling.sampler}({base.sampling.steps})",
-      "frame": {},
+      "frame": frames_by_devices(samples),
   }
-  for n in samples:
-    predictor = with_samples(base, n, _VEHICLES.value)
-    row = call_times(lambda p=predictor: p(scenarios, seed=0).prediction.mean, _CALLS.value)
-    result["frame"][n] = row
-    print(
-        f"{_VEHICLES.value} vehicles, {n} samples: first {row['first_ms']:.0f} ms, median "
-        f"{row['median_ms']:.1f} ms, p90 {row['p90_ms']:.1f} ms"
-    )
+  first = result["frame"][0]["samples"]
+  for run in result["frame"]:
+    for n, row in run["samples"].items():
+      print(
+          f"{_VEHICLES.value} vehicles, {n} samples, {run['host_devices']} host devices: first "
+          f"{row['first_ms']:.0f} ms, median {row['median_ms']:.1f} ms, p90 "
+          f"{row['p90_ms']:.1f} ms ({first[n]['median_ms'] / row['median_ms']:.2f}x the first)"
+      )
   result["parts_ms"] = parts(
       with_samples(base, samples[0], _VEHICLES.value), scenarios, _CALLS.value
   )

@@ -4,7 +4,7 @@
       --diffusion_dir=runs/demo/student_progressive_2 \\
       --recording=runs/demo/data/recordings/17_tracks.csv --every=5 \\
       --out=runs/demo/predictions_17.csv.gz [--start=10s --end=20s] [--samples] \\
-      [--animation=runs/demo/scene_17.gif]
+      [--animation=runs/demo/scene_17.gif] [--host_devices=2]
 
 The recording is `--recording=<dir>/NN_tracks.csv` or `--highd_dir=<dir> --recording_id=NN`
 (highD and the project's SUMO recordings alike). Every vehicle with 3 s of history at a
@@ -31,7 +31,7 @@ import numpy as np
 from absl import app, flags
 
 import cvmdx_jax
-from cvmdx_jax import constants
+from cvmdx_jax import constants, sharding
 from cvmdx_jax.data import frames as frames_lib
 from cvmdx_jax.data import highd
 from cvmdx_jax.errors import UserError
@@ -70,6 +70,13 @@ _CHUNK = flags.DEFINE_integer(
     None,
     f"Vehicle-frames per jitted call (default: {SCENARIOS_PER_CALL}, fewer where "
     f"their samples would exceed {SAMPLES_PER_CALL:,} trajectories a call).",
+    lower_bound=1,
+)
+_HOST_DEVICES = flags.DEFINE_integer(
+    "host_devices",
+    1,
+    "CPU devices to split each call's vehicles over (`sharding.use_host_devices`): one per "
+    "core is faster on CPU (docs/benchmarks.md); outputs equal 1's to float rounding.",
     lower_bound=1,
 )
 _ANIMATION = flags.DEFINE_string("animation", None, "Also write a GIF of the window.")
@@ -192,6 +199,7 @@ def _provenance(predictor, data_dir, recording_id, window, summary, out) -> dict
       },
       "window": window,
       "seed": _SEED.value,
+      "host_devices": _HOST_DEVICES.value,
       "samples": _SAMPLES.value,
       "sampling": identity.to_json(dataclasses.asdict(predictor.sampling)),
       "runs": runs,
@@ -204,6 +212,7 @@ def _provenance(predictor, data_dir, recording_id, window, summary, out) -> dict
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
+  sharding.use_host_devices(_HOST_DEVICES.value)
   recording.check_table_path(_OUT.value)
   section = _section()
   data_dir, recording_id = _source()

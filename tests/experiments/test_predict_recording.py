@@ -48,6 +48,7 @@ def test_every_vehicle_of_a_window_lands_in_the_table(tiny_runs, tmp_path):
       "--samples",
       "--num_samples=4",
       f"--animation={tmp_path / 'scene.gif'}",
+      "--host_devices=2",  # each call's vehicles split over two CPU devices
   )
   assert proc.returncode == 0, proc.stderr[-3000:]
   table = pd.read_csv(out)
@@ -69,8 +70,9 @@ def test_every_vehicle_of_a_window_lands_in_the_table(tiny_runs, tmp_path):
   assert provenance["recording"]["files"]["tracks"]["sha256"] == checksums.file_sha256(tracks)
   assert provenance["summary"]["predictions"] == len(expected)
   assert provenance["window"] == {"start": first + 125, "end": first + 150, "every": 10}
-  assert provenance["sampling"]["num_samples"] == 4
-  assert Image.open(tmp_path / "scene.gif").n_frames == len(window)
+  assert provenance["sampling"]["num_samples"] == 4 and provenance["host_devices"] == 2
+  with Image.open(tmp_path / "scene.gif") as gif:
+    assert gif.n_frames == len(window)
   assert "predictions_per_second" in proc.stdout and "consistency_m" in proc.stdout
 
 

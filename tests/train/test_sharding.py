@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax import sharding
+from cvmdx_jax.errors import UserError
 from tests.subprocess_env import environ
 
 REPO = Path(__file__).resolve().parents[2]
@@ -117,3 +118,33 @@ def test_another_run_in_one_process_is_refused_naming_process_and_keys(monkeypat
       "loop.extra: process 2 2, process 0 '<absent>'; loop.seed: process 2 1, process 0 0; "
       "nothing was written"
   )
+
+
+def test_use_host_devices_before_jax_starts_gives_that_many_devices():
+  script = textwrap.dedent("""
+      import jax
+      from cvmdx_jax import sharding
+      sharding.use_host_devices(2)
+      assert jax.device_count() == 2 and sharding.data_mesh().size == 2
+      sharding.use_host_devices(2)  # asked again: the same count passes
+      print("OK")
+  """)
+  env = environ(JAX_PLATFORMS="cpu")
+  env.pop("XLA_FLAGS", None)
+  out = subprocess.run(
+      [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120, cwd=REPO
+  )
+  assert out.returncode == 0 and out.stdout.strip() == "OK", out.stderr[-2000:]
+
+
+def test_use_host_devices_refuses_a_late_or_contradicting_count(monkeypatch):
+  have = len(jax.devices("cpu"))  # JAX has started in this process
+  monkeypatch.delenv("XLA_FLAGS", raising=False)
+  sharding.use_host_devices(1)
+  with pytest.raises(UserError, match="JAX started with"):
+    sharding.use_host_devices(have + 1)
+  monkeypatch.setenv("XLA_FLAGS", f"{sharding.HOST_DEVICES_FLAG}=4")
+  with pytest.raises(UserError, match="contradicts 3 host devices"):
+    sharding.use_host_devices(3)
+  with pytest.raises(UserError, match="expected at least 1"):
+    sharding.use_host_devices(0)
