@@ -30,6 +30,7 @@ from cvmdx_jax import cli  # first: a signal during the imports below is one lin
 import dataclasses
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -43,6 +44,7 @@ from absl import flags
 
 from cvmdx_jax import ego_motion, sharding, vmm
 from cvmdx_jax.data import dataset
+from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference import export
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.multimodal import fit_hypotheses
@@ -156,7 +158,9 @@ def frame_times(samples) -> dict:
 
 def frames_by_devices(samples) -> list:
   """[{"host_devices": count, "samples": `frame_times`}] per --host_devices, each in a
-  fresh process (a count may repeat: runs alternated)."""
+  fresh process (a count may repeat: runs alternated) whose XLA_FLAGS lose any count."""
+  xla_flags = re.sub(rf"{sharding.HOST_DEVICES_FLAG}=\d+", "", os.environ.get("XLA_FLAGS", ""))
+  env = dict(os.environ, XLA_FLAGS=xla_flags.strip())
   results = []
   for count in (int(c) for c in _HOST.value):
     cmd = [
@@ -170,7 +174,10 @@ def frames_by_devices(samples) -> list:
         ),
         f"--samples={','.join(str(n) for n in samples)}",
     ]
-    done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if done.returncode:  # the child's one-line error, without its "<script>: error: "
+      last = (done.stderr.strip() or "?").splitlines()[-1]
+      raise UserError(f"--host_devices={count}: {last.split(': error: ', 1)[-1]}")
     rows = json.loads(done.stdout.strip().splitlines()[-1])
     results.append({"host_devices": count, "samples": {int(n): r for n, r in rows.items()}})
   return results
