@@ -42,6 +42,7 @@ from cvmdx_jax.storage import identity
 
 DATA_AXIS = "data"
 HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+HOST_DEVICES_PATTERN = re.compile(rf"{HOST_DEVICES_FLAG}=(\d+)")  # the flag in XLA_FLAGS
 
 __all__ = [
     "DATA_AXIS",
@@ -213,7 +214,7 @@ def use_host_devices(count: int) -> None:
   if count < 1:
     raise UserError(f"host devices: {count}, expected at least 1")
   xla_flags = os.environ.get("XLA_FLAGS", "")
-  found = re.search(rf"{HOST_DEVICES_FLAG}=(\d+)", xla_flags)
+  found = HOST_DEVICES_PATTERN.search(xla_flags)
   if found and int(found.group(1)) != count:
     raise UserError(
         f"XLA_FLAGS sets {HOST_DEVICES_FLAG}={found.group(1)}, which contradicts {count} "

@@ -30,7 +30,6 @@ from cvmdx_jax import cli  # first: a signal during the imports below is one lin
 import dataclasses
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
@@ -156,29 +155,38 @@ def frame_times(samples) -> dict:
   }
 
 
+def run_child(*args: str, env=None) -> dict:
+  """This script in a fresh process with `args` (after the run and data flags): the JSON
+  of its last stdout line; its one-line error (without "<script>: error: ") raised."""
+  cmd = [
+      sys.executable,
+      __file__,
+      *(
+          f"--{f}={getattr(flags.FLAGS, f)}"
+          for f in ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles", "calls")
+      ),
+      *args,
+  ]
+  done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+  if done.returncode:
+    last = (done.stderr.strip() or "?").splitlines()[-1]
+    raise UserError(f"{' '.join(args)}: {last.split(': error: ', 1)[-1]}")
+  return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def frames_by_devices(samples) -> list:
   """[{"host_devices": count, "samples": `frame_times`}] per --host_devices, each in a
   fresh process (a count may repeat: runs alternated) whose XLA_FLAGS lose any count."""
-  xla_flags = re.sub(rf"{sharding.HOST_DEVICES_FLAG}=\d+", "", os.environ.get("XLA_FLAGS", ""))
+  xla_flags = sharding.HOST_DEVICES_PATTERN.sub("", os.environ.get("XLA_FLAGS", ""))
   env = dict(os.environ, XLA_FLAGS=xla_flags.strip())
   results = []
   for count in (int(c) for c in _HOST.value):
-    cmd = [
-        sys.executable,
-        __file__,
+    rows = run_child(
         "--child=frame",
         f"--host_devices={count}",
-        *(
-            f"--{f}={getattr(flags.FLAGS, f)}"
-            for f in ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles", "calls")
-        ),
         f"--samples={','.join(str(n) for n in samples)}",
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
-    if done.returncode:  # the child's one-line error, without its "<script>: error: "
-      last = (done.stderr.strip() or "?").splitlines()[-1]
-      raise UserError(f"--host_devices={count}: {last.split(': error: ', 1)[-1]}")
-    rows = json.loads(done.stdout.strip().splitlines()[-1])
+        env=env,
+    )
     results.append({"host_devices": count, "samples": {int(n): r for n, r in rows.items()}})
   return results
 
@@ -206,21 +214,10 @@ def first_calls(predictor: Predictor, runs: int) -> dict:
   with tempfile.TemporaryDirectory() as tmp:
     export.export(with_samples(predictor, int(_SAMPLES.value[0]), _VEHICLES.value), tmp)
     for kind in ("package", "exported"):
-      rows = []
-      for _ in range(runs):
-        cmd = [
-            sys.executable,
-            __file__,
-            f"--child={kind}",
-            f"--export_dir={tmp}",
-            *(
-                f"--{f}={getattr(flags.FLAGS, f)}"
-                for f in ("tokenizer_dir", "diffusion_dir", "data_dir", "vehicles")
-            ),
-            f"--samples={_SAMPLES.value[0]}",
-        ]
-        done = subprocess.run(cmd, capture_output=True, text=True, check=True)
-        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+      rows = [
+          run_child(f"--child={kind}", f"--export_dir={tmp}", f"--samples={_SAMPLES.value[0]}")
+          for _ in range(runs)
+      ]
       results[kind] = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
   return results
 
