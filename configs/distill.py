@@ -17,8 +17,9 @@ regresses `teacher_substeps` (k) DDIM steps of its teacher: `:demo` takes k = 5 
 guided teacher's 10-step DDIM for a 2-step student); a progressive teacher samples only
 its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Presets after
 the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores), `halving`
-beside either (k = 2; `:demo,halving`: the demo's 1-step stage). Any field can be
-overridden:
+beside either (k = 2; `:demo,halving`: the demo's 1-step stage). `init_dir` starts the
+student from another student's parameters (same U-Net) instead of the teacher's. Any field
+can be overridden:
 `--config.train.num_epochs=20`; the entry point checks every field once
 (`cvmdx_jax.config.runs.DistillRunConfig`).
 """
@@ -50,6 +51,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   config.guided_progressive = False
   # k: the teacher's DDIM steps per student step of a progressive stage (2: a halving)
   config.teacher_substeps = 2
+  # a distilled run of the same U-Net whose parameters start the student ("" = the teacher)
+  config.init_dir = ""
 
   config.train = ml_collections.ConfigDict()
   config.train.batch_size = 256  # global batch

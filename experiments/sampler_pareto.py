@@ -33,7 +33,7 @@ from absl import flags
 
 from cvmdx_jax.data import dataset
 from cvmdx_jax.errors import UserError
-from cvmdx_jax.evaluation import scoring
+from cvmdx_jax.evaluation import intervals, scoring
 from cvmdx_jax.inference.predictor import Predictor
 from cvmdx_jax.storage import atomic
 
@@ -114,6 +114,27 @@ def markdown(
         + " | ".join(f"{r[c]:.3f}" if c in r else "-" for c in COLUMNS)
         + " |"
     )
+  if all("vs_reference" in r for r in rows):
+    lines += [
+        "",
+        f"Against {REFERENCE[0]}-{REFERENCE[1]}: mean / reference - 1, paired 95 % interval "
+        "resampling whole vehicles:",
+        "",
+        "| sampler | " + " | ".join(COLUMNS) + " |",
+        "|---|" + "---|" * len(COLUMNS),
+    ]
+    for r in sorted(rows, key=lambda r: (r["evaluations"], r["sampler"])):
+      run = f" ({r['run']})" if r.get("run") else ""
+      cells = (r["vs_reference"][c] for c in COLUMNS)
+      lines.append(
+          f"| {r['sampler']}{run} S = {r['steps']} | "
+          + " | ".join(
+              f"{100 * v['relative']:+.1f} % [{100 * v['relative_low']:+.1f}, "
+              f"{100 * v['relative_high']:+.1f}]"
+              for v in cells
+          )
+          + " |"
+      )
   lines += [
       "",
       f"Default: {choice['sampler']} S = {choice['steps']}, the fewest evaluations "
@@ -125,8 +146,9 @@ def markdown(
 
 def evaluate(
     predictor: Predictor, data, sampler: str, steps: int, seed: int, run: str = ""
-) -> dict:
-  """Mean errors (m) of one sampler setting on `data` (time: experiments/benchmark.py)."""
+) -> tuple[dict, dict]:
+  """Mean errors (m) of one sampler setting on `data` (time: experiments/benchmark.py):
+  (the row, {column: (M,) per-scenario values})."""
   p = dataclasses.replace(
       predictor,
       sampling=dataclasses.replace(predictor.sampling, sampler=sampler, steps=steps, mode="paper"),
@@ -143,13 +165,26 @@ def evaluate(
       "energy_score": mean["energy_score"],
   }
   per_step = 1 if predictor.denoiser.config.diffusion.guidance_input else 2
-  return {
+  row = {
       "sampler": sampler,
       "steps": steps,
       "evaluations": per_step * steps,
       "run": run,
       **{k: float(np.mean(v)) for k, v in means.items()},
   }
+  return row, {k: np.asarray(v) for k, v in means.items()}
+
+
+def against_reference(per_scenario: list[dict], rows: list[dict], groups) -> None:
+  """Adds to each row "vs_reference": per column {"relative", "relative_low",
+  "relative_high"}, its mean over the reference's minus 1 with the paired 95 % interval
+  resampling whole vehicles (`evaluation.intervals`)."""
+  ref = next(i for i, r in enumerate(rows) if (r["sampler"], r["steps"]) == REFERENCE)
+  for values, row in zip(per_scenario, rows):
+    row["vs_reference"] = {}
+    for c in COLUMNS:
+      d = intervals.paired_difference(values[c], per_scenario[ref][c], groups)
+      row["vs_reference"][c] = {k: d[k] for k in ("relative", "relative_low", "relative_high")}
 
 
 def sample_rows() -> tuple[list[dict], str]:
@@ -170,10 +205,13 @@ def sample_rows() -> tuple[list[dict], str]:
         sampling=dataclasses.replace(predictor.sampling, sampler="distilled", steps=int(steps[0])),
     )
     runs += [(student, "distilled", int(s), Path(path).name) for s in steps]
-  rows = []
+  rows, per_scenario = [], []
   for p, sampler, steps, run in runs:
-    rows.append(evaluate(p, data, sampler, steps, _SEED.value, run))
-    print(rows[-1], flush=True)
+    row, values = evaluate(p, data, sampler, steps, _SEED.value, run)
+    rows.append(row)
+    per_scenario.append(values)
+    print(row, flush=True)
+  against_reference(per_scenario, rows, intervals.vehicle_groups(data.recording_id, data.track_id))
   note = (
       f"{_DIFFUSION.value}, split {_SPLIT.value}, {len(data)} class-balanced scenarios, "
       f"seed {_SEED.value}, {predictor.sampling.num_samples} samples"

@@ -165,6 +165,9 @@ class DistillRunConfig:
       in one run) instead of the guided v at every t.
     teacher_substeps: k, the teacher's DDIM steps per student step of a progressive stage
       (2: Salimans & Ho's halving; a progressive teacher must sample k S steps).
+    init_dir: a distilled run of the same U-Net whose parameters start the student ("" =
+      the teacher's, with a zero row for w); e.g. a 2-step student starting a 1-step one
+      that regresses the guided teacher's DDIM-10 itself.
     train: `DistillTrainConfig` (AdamW, EMA, epochs over the train split).
   """
 
@@ -175,6 +178,7 @@ class DistillRunConfig:
   steps: int = 4
   guided_progressive: bool = False
   teacher_substeps: int = 2
+  init_dir: str = ""
   train: DistillTrainConfig = DistillTrainConfig()
 
   def __post_init__(self):

@@ -38,7 +38,9 @@ def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean", draws: in
 
   Returns:
     {"a", "b", "difference", "low", "high", "verdict"} with verdict "better" (a lower,
-    interval below 0), "worse" (above 0) or "tie".
+    interval below 0), "worse" (above 0) or "tie"; "relative", "relative_low",
+    "relative_high": stat(a) / stat(b) - 1 and its interval from the same replicates
+    (NaN where stat(b) is 0).
   """
   a, b, groups = np.asarray(a, np.float64), np.asarray(b, np.float64), np.asarray(groups)
   n_groups = int(groups.max()) + 1
@@ -51,10 +53,13 @@ def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean", draws: in
   weight = np.stack([np.bincount(row, minlength=n_groups) for row in picks]).astype(np.float64)
   stat = lambda w: _statistic(w @ sums.T, w @ sq_sums.T, (w @ counts)[:, None], kind)
   replicated = stat(weight)
-  diffs = replicated[:, 0] - replicated[:, 1]
   point = stat(np.ones((1, n_groups)))[0]
   tail = 100.0 * (1.0 - CONFIDENCE) / 2.0
-  low, high = np.percentile(diffs, [tail, 100.0 - tail])
+  low, high = np.percentile(replicated[:, 0] - replicated[:, 1], [tail, 100.0 - tail])
+  with np.errstate(divide="ignore", invalid="ignore"):
+    ratios = replicated[:, 0] / replicated[:, 1] - 1.0
+    relative = point[0] / point[1] - 1.0 if point[1] else np.nan
+  rel_low, rel_high = np.percentile(ratios, [tail, 100.0 - tail]) if point[1] else (np.nan,) * 2
   verdict = "better" if high < 0 else "worse" if low > 0 else "tie"
   return {
       "a": float(point[0]),
@@ -63,6 +68,9 @@ def paired_difference(a, b, groups, seed: int = 0, kind: str = "mean", draws: in
       "low": float(low),
       "high": float(high),
       "verdict": verdict,
+      "relative": float(relative),
+      "relative_low": float(rel_low),
+      "relative_high": float(rel_high),
   }
 
 

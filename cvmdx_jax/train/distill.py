@@ -106,12 +106,13 @@ def student_params(teacher_params: dict, fresh: dict) -> dict:
   return traverse_util.unflatten_dict(out)
 
 
-def make_init_fn(teacher_params: dict, cfg: UNetConfig, tx):
-  """init_fn(key) -> {params, ema_params, opt_state, step, teacher}."""
+def make_init_fn(teacher_params: dict, cfg: UNetConfig, tx, start_params: dict | None = None):
+  """init_fn(key) -> {params, ema_params, opt_state, step, teacher}; the student starts
+  from `start_params` (a student's, `init_dir`) or from the teacher's."""
 
   def init_fn(key):
     _, fresh = unet1d.init_unet(cfg, key)
-    params = student_params(teacher_params, fresh)
+    params = student_params(teacher_params if start_params is None else start_params, fresh)
     return {
         "params": params,
         "ema_params": jax.tree.map(jnp.copy, params),
@@ -207,6 +208,20 @@ def check_teacher(teacher: Denoiser, config: DistillRunConfig) -> str:
   return stage
 
 
+def load_start(config: DistillRunConfig, student: DiffusionRunConfig) -> Denoiser | None:
+  """The run `config.init_dir` whose parameters start the student (None for ""); a
+  TeacherMismatchError where its U-Net is not the student's."""
+  if not config.init_dir:
+    return None
+  start = load_denoiser(config.init_dir)
+  if start.config.model != student.model:
+    raise TeacherMismatchError(
+        f"init_dir: {config.init_dir} is not a distilled run of this student's U-Net "
+        "(its model section differs; a student of the same teacher starts another)"
+    )
+  return start
+
+
 @locking.holds("workdir")
 def train(config: DistillRunConfig, workdir: str | os.PathLike):
   """Distils the teacher run `config.teacher_dir` into `workdir` (resuming if possible);
@@ -221,6 +236,7 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
   teacher = load_denoiser(config.teacher_dir)
   stage = check_teacher(teacher, config)
   student = student_config(teacher.config, config)
+  start = load_start(config, student)
   data, num_tokens, dataset_id, tokens_meta = diffusion_train.training_data(student, delta=True)
   fingerprint = fingerprints.diffusion(student, dataset_id, tokens_meta)
   saved = teacher.fingerprint.to_dict()
@@ -251,13 +267,17 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
       "clip_x0": student.sampling.clip_x0,
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)},
   }
+  if start is not None:
+    fingerprint["distill"]["init"] = identity.content_id(start.params)
   total_steps = (
       loop.steps_per_epoch(len(data["q"]), config.train.batch_size) * config.train.num_epochs
   )
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(
       workdir=workdir,
-      init_fn=make_init_fn(teacher.params, student.model, tx),
+      init_fn=make_init_fn(
+          teacher.params, student.model, tx, None if start is None else start.params
+      ),
       step_fn=make_step_fn(teacher, student, tx, stage=stage, substeps=config.teacher_substeps),
       data=data,
       fingerprint=fingerprint,

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from configs import distill as distill_config
@@ -66,6 +67,22 @@ def test_markdown_marks_the_choice_and_sorts_by_cost():
   assert [r.split("|")[3].strip() for r in body] == ["4", "6", "8", "10", "10", "20"]
   assert "**(default)**" in body[2] and sum("default" in r for r in body) == 1
   assert "dpmpp2m S = 4" in table[-1] and "chosen on val" in table[-1]
+
+
+def test_rows_carry_their_relative_difference_to_the_reference_with_an_interval():
+  rng = np.random.default_rng(0)
+  base = {c: rng.gamma(4.0, 0.25, 40) for c in sampler_pareto.COLUMNS}
+  rows = [dict(ROWS[2]), dict(ROWS[4])]  # the reference first, then dpmpp2m 4
+  per_scenario = [base, {c: 1.05 * v for c, v in base.items()}]
+  groups = np.repeat(np.arange(20), 2)  # two windows of each of 20 vehicles
+  sampler_pareto.against_reference(per_scenario, rows, groups)
+  for c in sampler_pareto.COLUMNS:  # 5 % worse in every scenario: in every replicate too
+    got = rows[1]["vs_reference"][c]
+    np.testing.assert_allclose([got["relative"], got["relative_low"], got["relative_high"]], 0.05)
+    assert rows[0]["vs_reference"][c]["relative"] == 0.0
+  table = sampler_pareto.markdown(rows, rows[1], 0.02, "note")
+  assert "| dpmpp2m S = 4 | +5.0 % [+5.0, +5.0] |" in table
+  assert "resampling whole vehicles" in table
 
 
 @pytest.mark.slow

@@ -37,3 +37,19 @@ def test_rmse_statistic():
   row = intervals.paired_difference([3.0, 4.0], [0.0, 0.0], [0, 1], kind="rmse", draws=10)
   np.testing.assert_allclose(row["a"], np.sqrt(12.5))
   assert intervals.format_difference(row).endswith(row["verdict"])
+
+
+def test_relative_difference_is_the_ratio_of_the_statistics_with_its_interval():
+  rng = np.random.default_rng(2)
+  groups = np.repeat(np.arange(300), 2)
+  b = rng.gamma(4.0, 0.25, 600)  # per-scenario errors of mean 1 m
+  row = intervals.paired_difference(1.03 * b, b, groups)
+  # a / b - 1 is 0.03 in every replicate: the interval collapses onto it
+  np.testing.assert_allclose([row["relative"], row["relative_low"], row["relative_high"]], 0.03)
+  noisy = intervals.paired_difference(1.03 * b + rng.normal(0, 0.2, 600), b, groups)
+  assert noisy["relative_low"] < noisy["relative"] < noisy["relative_high"]
+  np.testing.assert_allclose(noisy["relative"], noisy["a"] / noisy["b"] - 1.0)
+  # the absolute interval over b's mean brackets the relative one to first order
+  assert abs(noisy["relative_low"] - noisy["low"] / noisy["b"]) < 0.01
+  zero = intervals.paired_difference([1.0, 2.0], [0.0, 0.0], [0, 1], draws=10)
+  assert np.isnan(zero["relative"]) and np.isnan(zero["relative_high"])

@@ -32,7 +32,7 @@ from cvmdx_jax.inference.bundles import load_baseline, load_denoiser
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, OutOfDistributionWarning, Predictor
 from cvmdx_jax.models import unet1d
 from cvmdx_jax.runs import fingerprints
-from cvmdx_jax.storage import atomic, checkpointing, checksums
+from cvmdx_jax.storage import atomic, checkpointing, checksums, identity
 from cvmdx_jax.train import baseline, diffusion, distill
 from tests import fixtures_runs
 from tests.subprocess_env import environ
@@ -567,10 +567,13 @@ def test_class_weights_weight_each_training_scenario_by_its_class(runs):
       DiffusionRunConfig.from_config(diff)
 
 
-def _distill(teacher_dir, workdir, steps, guided_progressive=False, teacher_substeps=2):
+def _distill(
+    teacher_dir, workdir, steps, guided_progressive=False, teacher_substeps=2, init_dir=""
+):
   config = distill_config.get_config("tiny")
   config.teacher_dir, config.steps = str(teacher_dir), steps
   config.guided_progressive, config.teacher_substeps = guided_progressive, teacher_substeps
+  config.init_dir = str(init_dir)
   return distill.train(DistillRunConfig.from_config(config), workdir)
 
 
@@ -631,6 +634,13 @@ def test_distilled_students_load_predict_and_refuse_other_teachers(runs, tmp_pat
   # the student of one stage teaches the next halving, as a progressive student does
   _distill(tmp_path / "direct", tmp_path / "halved", 1)
   assert Predictor.load(runs / "tokenizer", tmp_path / "halved").sampling.steps == 1
+  # or a one-step student of the guided pair starts from that student's parameters
+  _distill(runs / "diffusion", tmp_path / "one", 1, True, 4, init_dir=tmp_path / "direct")
+  start_id = identity.content_id(load_denoiser(tmp_path / "direct").params)
+  assert recorded("one")["init"] == start_id and "init" not in recorded("direct")
+  with pytest.raises(distill.TeacherMismatchError, match="init_dir: .* not a distilled run"):
+    _distill(runs / "diffusion", tmp_path / "again", 1, True, 4, init_dir=runs / "diffusion")
+  assert not (tmp_path / "again").exists()
   # a guided_progressive run directory is not resumed as a guidance run of the same steps
   with pytest.raises(checkpointing.CheckpointMismatchError):
     _distill(runs / "diffusion", tmp_path / "direct", 2)

@@ -5,6 +5,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from cvmdx_jax.diffusion import distillation
@@ -54,3 +55,15 @@ def test_a_student_the_teacher_cannot_fill_is_refused():
   _, fresh = unet1d.init_unet(dataclasses.replace(TINY, base_channels=32), jax.random.key(1))
   with pytest.raises(distill.TeacherMismatchError, match="no teacher counterpart"):
     distill.student_params(teacher, fresh)
+
+
+def test_a_student_started_from_another_student_keeps_its_parameters():
+  student_cfg = dataclasses.replace(TINY, cond_dim=1)
+  _, start = unet1d.init_unet(student_cfg, jax.random.key(0))
+  start = jax.tree.map(lambda p: p + 0.25, start)  # not the fresh init of any key
+  _, teacher = unet1d.init_unet(TINY, jax.random.key(1))
+  tx = optax.adam(1e-3)
+  state = distill.make_init_fn(teacher, student_cfg, tx, start)(jax.random.key(2))
+  jax.tree.map(np.testing.assert_array_equal, state["params"], start)
+  jax.tree.map(np.testing.assert_array_equal, state["ema_params"], start)
+  jax.tree.map(np.testing.assert_array_equal, state["teacher"], teacher)
