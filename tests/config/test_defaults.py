@@ -75,3 +75,11 @@ def test_the_paper_preset_is_the_papers_setup():
   assert not paper.diffusion.intent_conditioning and paper.sampling.num_samples == 9
   # the paper's sampling is the dataclass default: nothing of it is a preset's choice
   assert paper.sampling == DiffusionRunConfig().sampling
+
+
+def test_the_long_distillation_preset_lengthens_only_the_first_stage():
+  epochs = lambda arg: DistillRunConfig.from_config(distill.get_config(arg)).train.num_epochs
+  assert (epochs("demo"), epochs("demo,long")) == (2, 8)
+  assert epochs("demo,long,halving") == epochs("demo,halving") == 15
+  with pytest.raises(ValueError, match="'long' extends ':demo'"):
+    distill.get_config("long")
