@@ -79,6 +79,14 @@ REFERENCE = ("ddim", 10)  # the paper's sampler
 COLUMNS = ("mean_ade", "mean_fde", "min_ade_k", "min_fde_k", "brier_min_fde", "energy_score")
 
 
+def reference_index(rows: list[dict], reference=REFERENCE) -> int:
+  """The index of the row of the `reference` (sampler, steps); UserError where none is."""
+  for i, r in enumerate(rows):
+    if (r["sampler"], r["steps"]) == reference:
+      return i
+  raise UserError(f"sampler_pareto: the reference setting {reference} was not evaluated")
+
+
 def choose_default(
     rows: list[dict], tolerance: float, criteria=("mean_ade",), reference=REFERENCE
 ) -> dict:
@@ -88,10 +96,8 @@ def choose_default(
   Raises:
     ValueError: no row is the reference setting.
   """
-  ref = [r for r in rows if (r["sampler"], r["steps"]) == reference]
-  if not ref:
-    raise UserError(f"sampler_pareto: the reference setting {reference} was not evaluated")
-  ok = lambda r: all(r[c] <= (1.0 + tolerance) * ref[0][c] for c in criteria)
+  ref = rows[reference_index(rows, reference)]
+  ok = lambda r: all(r[c] <= (1.0 + tolerance) * ref[c] for c in criteria)
   return min(filter(ok, rows), key=lambda r: (r["evaluations"], r["mean_ade"]))
 
 
@@ -179,7 +185,7 @@ def against_reference(per_scenario: list[dict], rows: list[dict], groups) -> Non
   """Adds to each row "vs_reference": per column {"relative", "relative_low",
   "relative_high"}, its mean over the reference's minus 1 with the paired 95 % interval
   resampling whole vehicles (`evaluation.intervals`)."""
-  ref = next(i for i, r in enumerate(rows) if (r["sampler"], r["steps"]) == REFERENCE)
+  ref = reference_index(rows)
   for values, row in zip(per_scenario, rows):
     row["vs_reference"] = {}
     for c in COLUMNS:

@@ -208,8 +208,8 @@ def check_teacher(teacher: Denoiser, config: DistillRunConfig) -> str:
   return stage
 
 
-def load_start(config: DistillRunConfig, student: DiffusionRunConfig) -> Denoiser | None:
-  """The run `config.init_dir` whose parameters start the student (None for ""); a
+def load_start(config: DistillRunConfig, student: DiffusionRunConfig) -> dict | None:
+  """The parameters of the run `config.init_dir` that start the student (None for ""); a
   TeacherMismatchError where its U-Net is not the student's."""
   if not config.init_dir:
     return None
@@ -219,7 +219,7 @@ def load_start(config: DistillRunConfig, student: DiffusionRunConfig) -> Denoise
         f"init_dir: {config.init_dir} is not a distilled run of this student's U-Net "
         "(its model section differs; a student of the same teacher starts another)"
     )
-  return start
+  return start.params
 
 
 @locking.holds("workdir")
@@ -268,16 +268,14 @@ def train(config: DistillRunConfig, workdir: str | os.PathLike):
       "teacher": {"fingerprint": saved, "params_id": identity.content_id(teacher.params)},
   }
   if start is not None:
-    fingerprint["distill"]["init"] = identity.content_id(start.params)
+    fingerprint["distill"]["init"] = identity.content_id(start)
   total_steps = (
       loop.steps_per_epoch(len(data["q"]), config.train.batch_size) * config.train.num_epochs
   )
   tx = diffusion_train.optimizer(config.train, total_steps)
   return loop.train(
       workdir=workdir,
-      init_fn=make_init_fn(
-          teacher.params, student.model, tx, None if start is None else start.params
-      ),
+      init_fn=make_init_fn(teacher.params, student.model, tx, start),
       step_fn=make_step_fn(teacher, student, tx, stage=stage, substeps=config.teacher_substeps),
       data=data,
       fingerprint=fingerprint,
