@@ -70,7 +70,7 @@ benchmark: $(STAMP)
 ## The demo's trained models on large new SUMO test sets (>= 1,000 scenarios per class on the
 ## test roads and on the held-out road): proper scores, vehicle-bootstrap intervals, conformal
 ## regions -> runs/quality/quality.md (docs/results.md, "Quality benchmark"). Needs make demo;
-## 19 min on 2 cores (Intel Xeon, fresh clone, install included).
+## 19 min on 2 cores with the 2-step student (Intel Xeon, fresh clone, install included).
 benchmark-quality: $(STAMP)
 	$(PY) experiments/benchmark_quality.py --workdir=runs/quality --runs=runs/demo \
 	  --max_scenarios=3000

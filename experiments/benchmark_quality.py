@@ -36,6 +36,7 @@ import numpy as np
 from absl import app, flags
 
 from configs import dataset as dataset_config
+from configs import distill as distill_config
 from cvmdx_jax.data import dataset
 from cvmdx_jax.data.scenarios import balanced_indices
 from cvmdx_jax.evaluation import (
@@ -54,7 +55,9 @@ from cvmdx_jax.storage import atomic, checksums
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (dataset cached inside).")
 _RUNS = flags.DEFINE_list("runs", None, "Trained demo directories (one per training seed).")
 _DENOISER = flags.DEFINE_string(
-    "denoiser", "student_progressive_2", "The denoiser run inside each demo directory."
+    "denoiser",
+    f"student_progressive_{distill_config.STUDENTS[-1]}",
+    "The denoiser run inside each demo directory (default: the demo's last student).",
 )
 _TEST = flags.DEFINE_integer(
     "test_recordings", 4, "New test-road recordings of 240 s.", lower_bound=1

@@ -2,7 +2,7 @@
 frame per call, and the first call of the exported artefact against the package's.
 
   .venv/bin/python experiments/benchmark_stack.py --tokenizer_dir=runs/demo/tokenizer \\
-      --diffusion_dir=runs/demo/student_progressive_2 --data_dir=runs/demo/data
+      --diffusion_dir=runs/demo/student_progressive_1 --data_dir=runs/demo/data
 
 1. A frame of --vehicles vehicles (the first scenarios of the test split: a vehicle's input
    is its 3 s of history and its neighbours', whatever the frame) predicted by one

@@ -2,7 +2,7 @@
 artefacts that run with JAX alone, without this package.
 
   .venv/bin/python experiments/export.py --tokenizer_dir=runs/demo/tokenizer \\
-      --diffusion_dir=runs/demo/student_progressive_2 --out=runs/demo/export
+      --diffusion_dir=runs/demo/student_progressive_1 --out=runs/demo/export
 
 writes <out>/predict.jax (the whole prediction), <out>/denoiser.jax (one denoiser
 evaluation), <out>/manifest.json and <out>/checksums.json (`cvmdx_jax.inference.export`),

@@ -1,7 +1,7 @@
 """Predicts every vehicle of a highD-format recording at every k-th frame.
 
   .venv/bin/python experiments/predict_recording.py --tokenizer_dir=runs/demo/tokenizer \\
-      --diffusion_dir=runs/demo/student_progressive_2 \\
+      --diffusion_dir=runs/demo/student_progressive_1 \\
       --recording=runs/demo/data/recordings/17_tracks.csv --every=5 \\
       --out=runs/demo/predictions_17.csv.gz [--start=10s --end=20s] [--samples] \\
       [--animation=runs/demo/scene_17.gif] [--host_devices=2]

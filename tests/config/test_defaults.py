@@ -77,9 +77,9 @@ def test_the_paper_preset_is_the_papers_setup():
   assert paper.sampling == DiffusionRunConfig().sampling
 
 
-def test_the_long_distillation_preset_lengthens_only_the_first_stage():
+def test_the_long_distillation_preset_lengthens_both_stages():
   epochs = lambda arg: DistillRunConfig.from_config(distill.get_config(arg)).train.num_epochs
   assert (epochs("demo"), epochs("demo,long")) == (2, 8)
-  assert epochs("demo,long,halving") == epochs("demo,halving") == 15
+  assert (epochs("demo,halving"), epochs("demo,long,halving")) == (10, 15)
   with pytest.raises(ValueError, match="'long' extends ':demo'"):
     distill.get_config("long")

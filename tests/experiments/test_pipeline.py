@@ -262,6 +262,18 @@ def test_demo_reports_test_and_test_ood_in_one_schema(runs, tmp_path, monkeypatc
   assert 0 <= ood["cvmdx_mean"]["all"]["out_of_distribution"] <= 1
   assert "| Constant velocity |" in (out / "results_test_ood.md").read_text()
   assert (out / "kl_vs_usage_test_ood.png").is_file()
+  # the memory handed back between the splits changes no number: test_ood alone is the same
+  alone = report.run(
+      tokenizer_dir=runs / "tokenizer",
+      diffusion_dir=runs / "diffusion",
+      data_dir=runs / "data",
+      workdir=tmp_path / "alone",
+      split="test_ood",
+      ddpm_scenarios=0,
+      max_scenarios=6,
+  )
+  same = lambda metrics: json.dumps(metrics, sort_keys=True)  # NaN (too few to rank) as NaN
+  assert same(alone) == same(results["test_ood"])
   # a dataset without test_ood (highD, cvmd_mat): the test report only, and a note
   monkeypatch.setattr(report.dataset_lib, "split_names", lambda _: ["train", "val", "test"])
   calls = []
