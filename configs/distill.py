@@ -22,7 +22,7 @@ its own steps, so halving one needs k = 2 (`--config.teacher_substeps=2`). Prese
 the path: `:tiny` (seconds, tests), `:demo` (the `make demo` stage on 2 cores), `halving`
 beside either (k = 2; `:demo,halving`: the demo's 1-step stage), `long` beside `:demo` (8
 epochs for the guided-progressive stage and 15 for its halving: `run_demo.py
---distill_preset=demo,long` trains both, ~10 min on 2 cores against the demo's ~4).
+--distill_preset=demo,long` trains both, ~10 min on 2 cores against the demo's 4-5).
 `init_dir` starts the student from another student's parameters (same U-Net) instead of
 the teacher's. Any field can be overridden: `--config.train.num_epochs=20`; the entry
 point checks every field once (`cvmdx_jax.config.runs.DistillRunConfig`).
