@@ -40,7 +40,7 @@ from cvmdx_jax.diffusion.losses import weighted_mse
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.inference.bundles import Denoiser, load_denoiser
 from cvmdx_jax.models import unet1d
-from cvmdx_jax.runs import fingerprints, layout
+from cvmdx_jax.runs import fingerprints, layout, loaders
 from cvmdx_jax.storage import identity, locking
 from cvmdx_jax.train import diffusion as diffusion_train
 from cvmdx_jax.train import loop
@@ -213,13 +213,13 @@ def load_start(config: DistillRunConfig, student: DiffusionRunConfig) -> dict | 
   TeacherMismatchError where its U-Net is not the student's."""
   if not config.init_dir:
     return None
-  start = load_denoiser(config.init_dir)
-  if start.config.model != student.model:
+  start_config, start_params, _ = loaders.read_denoiser(config.init_dir)  # no graph needed
+  if start_config.model != student.model:
     raise TeacherMismatchError(
         f"init_dir: {config.init_dir} is not a distilled run of this student's U-Net "
         "(its model section differs; a student of the same teacher starts another)"
     )
-  return start.params
+  return start_params
 
 
 @locking.holds("workdir")
