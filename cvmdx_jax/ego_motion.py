@@ -43,6 +43,7 @@ embedding), "ego_residual" (token only, but the target is controls minus
 the unconditional branch drops the token only; both branches see the same features.
 """
 
+import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants
@@ -107,6 +108,7 @@ def _slope(values, weights):
   return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
 
 
+@jax.jit  # one compiled call over a split, not ~100 dispatches of its operations
 def ego_features(xi, mask):
   """Normalised ego-motion features (table in the module docstring).
 

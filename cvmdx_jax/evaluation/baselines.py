@@ -1,12 +1,15 @@
 """Baselines from the last observed ego state (same frame as `Scenarios`): physics
 extrapolations, and the token-mean controls that measure what a scenario token tells."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 from cvmdx_jax import constants, vmm
 
 
+@jax.jit
 def constant_velocity(xi):
   """Constant velocity: xi (M, 9, 75, 4) -> (M, 125, 2) ego positions after t0."""
   velocity = jnp.asarray(xi)[:, 0, -1, 2:4]
@@ -14,6 +17,7 @@ def constant_velocity(xi):
   return velocity[:, None, :] * t[None, :, None]
 
 
+@functools.partial(jax.jit, static_argnames="window")
 def constant_acceleration_yaw_rate(xi, window: int = 10):
   """Constant longitudinal acceleration and yaw rate, both estimated by finite
   differences of speed and heading over the last `window` observed steps, rolled

@@ -10,7 +10,6 @@ cVMDx's hypotheses).
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from cvmdx_jax.evaluation import probabilistic, scoring
 from cvmdx_jax.inference.distributions import GaussianMixture
@@ -25,19 +24,21 @@ def errors(mixture: GaussianMixture, gt, labels) -> dict:
   gt = jnp.asarray(gt)
   means, weights = jnp.asarray(mixture.means), jnp.asarray(mixture.weights)
   used = jnp.maximum(weights, jnp.finfo(weights.dtype).tiny)  # every mode is a hypothesis
-  sampled = GaussianMixture(means, jnp.asarray(mixture.stds), weights).sample(
-      jax.random.key(ES_SEED), ES_SAMPLES
-  )
-  log_density = GaussianMixture(means, jnp.asarray(mixture.stds), weights).log_density(gt)
+  mean, modes_es = _mixture_scores(means, jnp.asarray(mixture.stds), weights, gt)
+  best = {**scoring.best_of_k_errors(means, used, gt, labels), "energy_score": modes_es}
+  return {"mdn_mean": mean, "mdn_best_of_k": best}
+
+
+@jax.jit
+def _mixture_scores(means, stds, weights, gt) -> tuple[dict, jax.Array]:
+  """(the mean row's errors, the modes' energy score as a discrete distribution)."""
+  mixture = GaussianMixture(means, stds, weights)
+  sampled = mixture.sample(jax.random.key(ES_SEED), ES_SAMPLES)
   mean = {
-      **scoring.single_trajectory_errors(jnp.einsum("mk,mktd->mtd", weights, means), gt),
+      **scoring.single_trajectory_errors(mixture.mean(), gt),
       "energy_score": probabilistic.weighted_energy_score(
           sampled.points, sampled.weights, gt, fair=True
       ),
-      "nll_final": -np.asarray(log_density)[:, -1],
+      "nll_final": -mixture.log_density(gt)[:, -1],
   }
-  best = {
-      **scoring.best_of_k_errors(means, used, gt, labels),
-      "energy_score": probabilistic.weighted_energy_score(means, weights, gt, fair=False),
-  }
-  return {"mdn_mean": mean, "mdn_best_of_k": best}
+  return mean, probabilistic.weighted_energy_score(means, weights, gt, fair=False)

@@ -22,6 +22,7 @@ Metrics are never computed over NaN: `check_finite` refuses non-finite predictio
 `summarise` non-finite per-scenario values, with `NonFinitePredictionError`.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
@@ -70,6 +71,7 @@ def check_finite(prediction, scenarios, what: str) -> None:
     )
 
 
+@jax.jit
 def single_trajectory_errors(pred, gt) -> dict:
   """Per-scenario errors of one trajectory per scenario: (M, T, 2) each -> dict of (M,)."""
   final = metrics.fde(pred, gt)
@@ -91,13 +93,20 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
   `target_lane_hit` is a masked array, masked on keep-lane scenarios; `energy_score` is the
   exact score of the hypotheses as a discrete distribution with weights p.
   """
+  errors = _best_of_k(hyps, probs, gt)
+  lane = errors["target_lane_hit"]
+  return {**errors, "target_lane_hit": np.ma.masked_array(lane, mask=np.asarray(labels) == 0)}
+
+
+@jax.jit
+def _best_of_k(hyps, probs, gt) -> dict:
+  """`best_of_k_errors` but for the mask of `target_lane_hit`."""
   valid = probs > 0
   final = metrics.min_fde_k(hyps, gt, valid)
   lon, lat = metrics.final_lon_lat(
       metrics.take_hypothesis(hyps, metrics.closest_final(hyps, gt, valid)), gt
   )
   hits = jnp.where(valid, metrics.hit(hyps, gt[:, None]), 0.0)
-  lane = metrics.target_lane_hit(hyps, probs, gt, min_prob=TARGET_LANE_MIN_PROB)
   weights = probs / jnp.sum(probs, axis=-1, keepdims=True)
   return {
       "ade": metrics.min_ade_k(hyps, gt, valid),
@@ -107,7 +116,7 @@ def best_of_k_errors(hyps, probs, gt, labels) -> dict:
       "miss_rate": metrics.miss(final),
       "hit_rate": jnp.max(hits, axis=-1),
       "brier_min_fde": metrics.brier_min_fde(hyps, probs, gt, valid),
-      "target_lane_hit": np.ma.masked_array(np.asarray(lane), mask=np.asarray(labels) == 0),
+      "target_lane_hit": metrics.target_lane_hit(hyps, probs, gt, min_prob=TARGET_LANE_MIN_PROB),
       "energy_score": probabilistic.weighted_energy_score(hyps, weights, gt, fair=False),
   }
 
@@ -142,12 +151,10 @@ def calibration(hyps, probs, gt, labels) -> tuple[dict, dict]:
   data of all scenarios as lists: {"count", "confidence", "accuracy"} per bin, with
   confidence and accuracy the bin's means (NaN where empty)).
   """
-  valid = probs > 0
-  closest = metrics.closest_final(hyps, gt, valid)
-  correct = jnp.arange(probs.shape[-1]) == closest[:, None]
+  valid, correct = _closest(hyps, probs, gt)
   out = {}
-  for subset, sel in _subset_masks(np.asarray(labels)):
-    rel = probabilistic.reliability(probs[sel], correct[sel], valid[sel])
+  for subset, sel in _subset_masks(np.asarray(labels)):  # a subset as a mask: one shape
+    rel = probabilistic.reliability(probs, correct, valid & sel[:, None])
     out[subset] = {
         "ece": float(probabilistic.expected_calibration_error(rel)) if sel.any() else float("nan")
     }
@@ -160,6 +167,14 @@ def calibration(hyps, probs, gt, labels) -> tuple[dict, dict]:
         "accuracy": (np.asarray(rel.correct) / count).tolist(),
     }
   return out, diagram
+
+
+@jax.jit
+def _closest(hyps, probs, gt):
+  """(valid (M, K): p > 0, correct (M, K): the valid hypothesis closest to the truth at 5 s)."""
+  valid = probs > 0
+  closest = metrics.closest_final(hyps, gt, valid)
+  return valid, jnp.arange(probs.shape[-1]) == closest[:, None]
 
 
 def delta_rank_correlation(delta, ade, labels) -> dict:

@@ -184,6 +184,6 @@ def load_baseline(workdir: str | os.PathLike) -> LearnedBaseline:
       features), or a corrupt one.
   """
   config, params, fingerprint, epoch = loaders.load_val_chosen(
-      workdir, BaselineRunConfig, mc.init, "baseline"
+      workdir, BaselineRunConfig, mc.abstract_params, "baseline"
   )
   return LearnedBaseline(params, mc.make_graphdef(config.model), config, fingerprint, epoch)

@@ -73,6 +73,6 @@ def load_mdn(workdir: str | os.PathLike) -> MixtureDensityBaseline:
       a corrupt one.
   """
   config, params, fingerprint, epoch = loaders.load_val_chosen(
-      workdir, MDNRunConfig, mdn.init, "mixture density"
+      workdir, MDNRunConfig, mdn.abstract_params, "mixture density"
   )
   return MixtureDensityBaseline(params, mdn.make_graphdef(config.model), config, fingerprint, epoch)

@@ -57,7 +57,12 @@ def init(config: MixtureDensityConfig, key: jax.Array) -> tuple[nnx.GraphDef, di
 
 def make_graphdef(config: MixtureDensityConfig) -> nnx.GraphDef:
   """The graph definition alone (no parameters are allocated)."""
-  return functional.make_graphdef(lambda rngs: MixtureDensityMLP(config, rngs=rngs))
+  return functional.make_graphdef(MixtureDensityMLP, config)
+
+
+def abstract_params(config: MixtureDensityConfig) -> dict:
+  """The parameters' shapes and dtypes (`jax.ShapeDtypeStruct`s; nothing is allocated)."""
+  return functional.abstract_params(MixtureDensityMLP, config)
 
 
 def mixture(graphdef, params, config: MixtureDensityConfig, q, delta, ego, v0, psi0):

@@ -66,7 +66,12 @@ def init(config: MultipleChoiceConfig, key: jax.Array) -> tuple[nnx.GraphDef, di
 
 def make_graphdef(config: MultipleChoiceConfig) -> nnx.GraphDef:
   """The graph definition alone (no parameters are allocated)."""
-  return functional.make_graphdef(lambda rngs: MultipleChoiceMLP(config, rngs=rngs))
+  return functional.make_graphdef(MultipleChoiceMLP, config)
+
+
+def abstract_params(config: MultipleChoiceConfig) -> dict:
+  """The parameters' shapes and dtypes (`jax.ShapeDtypeStruct`s; nothing is allocated)."""
+  return functional.abstract_params(MultipleChoiceMLP, config)
 
 
 def apply(graphdef, params, q, delta, ego):

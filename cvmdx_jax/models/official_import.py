@@ -196,7 +196,7 @@ def params_from_state_dict(
     OfficialCheckpointError: a parameter missing, left over, or of another shape; the
       message names the file and the official parameter.
   """
-  abstract = jax.eval_shape(lambda: unet1d.init_unet(cfg, jax.random.key(0))[1])
+  abstract = unet1d.abstract_params(cfg)
   try:
     arrays, used = _converted(state, cfg)
   except OfficialCheckpointError as e:

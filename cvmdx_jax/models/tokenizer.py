@@ -67,7 +67,12 @@ def init_tokenizer(config: TokenizerConfig, key: jax.Array):
 
 def make_graphdef(config: TokenizerConfig):
   """The graph definition alone (no parameters are allocated)."""
-  return functional.make_graphdef(lambda rngs: Tokenizer(config, rngs=rngs))
+  return functional.make_graphdef(Tokenizer, config)
+
+
+def abstract_params(config: TokenizerConfig) -> dict:
+  """The parameters' shapes and dtypes (`jax.ShapeDtypeStruct`s; nothing is allocated)."""
+  return functional.abstract_params(Tokenizer, config)
 
 
 def apply_tokenizer(graphdef, params, xi: jax.Array, mask: jax.Array) -> Output:

@@ -162,7 +162,12 @@ def init_unet(config: UNetConfig, key: jax.Array):
 
 def make_graphdef(config: UNetConfig):
   """The graph definition alone (no parameters are allocated)."""
-  return functional.make_graphdef(lambda rngs: UNet1D(config, rngs=rngs))
+  return functional.make_graphdef(UNet1D, config)
+
+
+def abstract_params(config: UNetConfig) -> dict:
+  """The parameters' shapes and dtypes (`jax.ShapeDtypeStruct`s; nothing is allocated)."""
+  return functional.abstract_params(UNet1D, config)
 
 
 def apply_unet(graphdef, params, x_t, t, q, dropout_key=None, cond=None):

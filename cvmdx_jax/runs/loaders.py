@@ -28,11 +28,6 @@ from cvmdx_jax.storage.checksums import CorruptRunError
 from cvmdx_jax.storage.identity import content_id
 
 
-def abstract_params(init, model_cfg) -> dict:
-  """ShapeDtypeStructs of `init(model_cfg, key)`'s parameters (nothing is allocated)."""
-  return jax.eval_shape(lambda key: init(model_cfg, key)[1], jax.random.key(0))
-
-
 def restore_latest(workdir: Path, abstract: dict) -> tuple[dict, dict]:
   """(the leaves of `abstract` from the latest checkpoint, the saved fingerprint)."""
   rep = sharding.replicated(sharding.data_mesh())
@@ -81,7 +76,7 @@ def read_tokenizer(workdir: str | os.PathLike):
   saved = layout.read_json(path, "tokeniser")
   model_cfg = to_dataclass(TokenizerConfig, saved["model"])
   abstract = {
-      "params": abstract_params(tokenizer_lib.init_tokenizer, model_cfg),
+      "params": tokenizer_lib.abstract_params(model_cfg),
       "step": jax.ShapeDtypeStruct((), jnp.int32),
   }
   state, fingerprint = restore_latest(workdir, abstract)
@@ -125,22 +120,20 @@ def read_denoiser(workdir: str | os.PathLike):
   """
   workdir = Path(workdir)
   config = read_run_config(workdir, DiffusionRunConfig, "diffusion")
-  tree, fingerprint = restore_latest(
-      workdir, {"ema_params": abstract_params(unet1d.init_unet, config.model)}
-  )
+  tree, fingerprint = restore_latest(workdir, {"ema_params": unet1d.abstract_params(config.model)})
   return config, tree["ema_params"], ml_collections.FrozenConfigDict(fingerprint)
 
 
-def load_val_chosen(workdir: str | os.PathLike, run_cls, init, what: str):
+def load_val_chosen(workdir: str | os.PathLike, run_cls, abstract_params, what: str):
   """(config, params, fingerprint, epoch) of a run whose train state keeps the val-chosen
   parameters in "best" (`train.baseline.make_init_fn`): its `run_cls` config.json, the
-  parameters of `init(config.model, key)`'s structure, the saved fingerprint and the
+  parameters of `abstract_params(config.model)`'s structure, the saved fingerprint and the
   chosen epoch; raises as `load_baseline` does, naming a `what` run directory."""
   workdir = Path(workdir)
   config = read_run_config(workdir, run_cls, what)
   abstract = {
       "best": {
-          "params": abstract_params(init, config.model),
+          "params": abstract_params(config.model),
           "epoch": jax.ShapeDtypeStruct((), jnp.int32),
       }
   }

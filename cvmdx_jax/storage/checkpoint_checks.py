@@ -63,15 +63,17 @@ def check_structure(
     )
 
 
-@jax.jit
-def _nan_leaves(leaves: list) -> jax.Array:
-  """(L,) bool: whether each leaf holds a NaN (non-float leaves: False)."""
-  return jnp.stack(
-      [
-          jnp.isnan(x).any() if jnp.issubdtype(x.dtype, jnp.inexact) else jnp.zeros((), bool)
-          for x in leaves
-      ]
-  )
+def _holds_nan(leaf: Any) -> bool:
+  """Whether a leaf holds a NaN in the data this process holds (one copy of each shard;
+  non-float leaves: False). On the host: a jitted check compiles per tree structure, ~0.7 s a
+  checkpoint on a 2-core CPU, for parameters this small to copy."""
+  if not jnp.issubdtype(leaf.dtype, jnp.inexact):
+    return False
+  if isinstance(leaf, jax.Array):
+    return any(
+        np.isnan(np.asarray(s.data)).any() for s in leaf.addressable_shards if s.replica_id == 0
+    )
+  return bool(np.isnan(np.asarray(leaf)).any())
 
 
 def refuse_nan(state: Any, where: Path) -> None:
@@ -79,12 +81,9 @@ def refuse_nan(state: Any, where: Path) -> None:
   diverged run: never loaded, neither to resume nor as a teacher). Infinities pass (a
   best-so-far score starts at inf)."""
   flat = jax.tree_util.tree_flatten_with_path(state)[0]
-  if not flat:
-    return
-  paths, leaves = zip(*flat)
-  bad = np.flatnonzero(np.asarray(jax.device_get(_nan_leaves(list(leaves)))))
-  if bad.size:
+  bad = next((path for path, leaf in flat if _holds_nan(leaf)), None)
+  if bad is not None:
     raise CheckpointMismatchError(
-        f"checkpoint {where} holds NaN in {_path_key(paths[bad[0]])!r} (a diverged run): "
+        f"checkpoint {where} holds NaN in {_path_key(bad)!r} (a diverged run): "
         "delete this step directory to fall back to an older one, or retrain"
     )

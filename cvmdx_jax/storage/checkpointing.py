@@ -20,6 +20,8 @@ read-only `Checkpoints` lists such a step, and `load` refuses it naming the miss
 """
 
 import contextlib
+import copy
+import functools
 import logging
 import os
 import shutil
@@ -242,15 +244,7 @@ class Checkpoints:
           f"checkpoint {where} is corrupt: {e}; delete this step directory to fall back to "
           "an older one, or retrain"
       ) from e
-    try:
-      with _quiet_orbax():
-        meta = ocp.metadata(where, _STATE)
-      if meta.metadata is None:  # orbax returns None when it cannot parse the tree metadata
-        raise ValueError("no readable pytree metadata")
-    except Exception as e:
-      raise CheckpointMismatchError(
-          f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})"
-      ) from e
+    meta = _state_metadata(where, (where / checksums.MANIFEST).read_bytes())
     check_structure(meta.metadata, abstract_state, str(where), partial)
     context = ocp.Context()
     context.pytree.loading.partial_load = partial
@@ -266,7 +260,26 @@ class Checkpoints:
     if "cvmdx" not in custom:
       raise CheckpointMismatchError(f"checkpoint {where} carries no cvmdx metadata")
     refuse_nan(state, where)
-    return state, custom["cvmdx"]
+    return state, copy.deepcopy(custom["cvmdx"])
+
+
+@functools.lru_cache(maxsize=64)
+def _state_metadata(where: Path, manifest: bytes):
+  """orbax's metadata of step directory `where` (its state's leaves with shapes and dtypes,
+  and the custom metadata), read once per step content: `manifest` is the step's verified
+  checksums.json, so a step rewritten in place is read again. orbax opens every saved array
+  for it (~1 s for a distilled student's state on 2 CPU cores), and one process reads a
+  checkpoint several times (the tokeniser in every stage of `make demo`)."""
+  try:
+    with _quiet_orbax():
+      meta = ocp.metadata(where, _STATE)
+    if meta.metadata is None:  # orbax returns None when it cannot parse the tree metadata
+      raise ValueError("no readable pytree metadata")
+  except Exception as e:
+    raise CheckpointMismatchError(
+        f"checkpoint {where} is corrupt or unreadable ({type(e).__name__}: {e})"
+    ) from e
+  return meta
 
 
 def load_latest(

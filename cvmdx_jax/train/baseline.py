@@ -41,7 +41,6 @@ from cvmdx_jax.train import loop, optimizers
 
 INPUTS = ("q", "delta", "ego", "v0", "psi0")  # what a forward pass reads
 _EPS_M2 = 1e-6  # m^2 under the square root of a displacement (its gradient at 0)
-_ego_features = jax.jit(ego_motion.ego_features)  # one compiled call, not ~100 dispatches
 
 
 def wta_loss(trajectories, logits, future, weight, cls_weight: float):
@@ -198,7 +197,7 @@ def split_arrays(config: BaselineRunConfig, split: str) -> tuple[dict, dict]:
   arrays = {
       "q": toks.q.astype(np.int32),
       "delta": toks.delta.astype(np.float32),
-      "ego": np.asarray(_ego_features(scenarios.xi, scenarios.mask)),
+      "ego": np.asarray(ego_motion.ego_features(scenarios.xi, scenarios.mask)),
       "v0": scenarios.v0.astype(np.float32),
       "psi0": scenarios.psi0.astype(np.float32),
       "future": scenarios.future.astype(np.float32),

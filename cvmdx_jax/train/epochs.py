@@ -113,7 +113,6 @@ class EpochRunner:
   def __init__(
       self,
       workdir: Path,
-      init_fn,
       step_fn: StepFn,
       data: dict[str, np.ndarray],
       batch_size: int,
@@ -121,7 +120,7 @@ class EpochRunner:
       run_meta: dict,
       mesh,
   ):
-    self.workdir, self.init_fn, self.data, self.mesh = workdir, init_fn, data, mesh
+    self.workdir, self.data, self.mesh = workdir, data, mesh
     self.batch_size, self.seed, self.run_meta = batch_size, seed, run_meta
     self.m = next(iter(data.values())).shape[0]
     self.steps_per_epoch = steps_per_epoch(self.m, batch_size)
@@ -132,15 +131,15 @@ class EpochRunner:
 
     self.step = jax.jit(keyed_step, donate_argnums=0)
 
-  def start(self, ckpts, abstract: State, on_start) -> tuple[State, int, list[dict]]:
-    """(state, global step, step metrics of the unfinished epoch) to go on from."""
+  def start(self, ckpts, init, on_start) -> tuple[State, int, list[dict]]:
+    """(state, global step, step metrics of the unfinished epoch) to go on from; `init` is
+    the init function traced for this run's key (`jax.stages.Traced`, its `out_info` the
+    state to restore into)."""
     state, start, metrics = _resume_point(
-        ckpts, self.workdir, abstract, self.run_meta, self.steps_per_epoch
+        ckpts, self.workdir, init.out_info, self.run_meta, self.steps_per_epoch
     )
     if state is None:
-      state = jax.jit(self.init_fn, out_shardings=sharding.replicated(self.mesh))(
-          init_key(self.seed)
-      )
+      state = init.lower().compile()(init_key(self.seed))
     if on_start is not None:
       on_start()
     if sharding.is_primary():

@@ -51,17 +51,18 @@ __all__ = [
 ]
 
 
-def _abstract_state(init_fn: Callable[[jax.Array], State], mesh) -> State:
-  """Shapes and dtypes of `init_fn`'s state, replicated on `mesh`; refuses typed PRNG keys."""
-  abstract = jax.eval_shape(init_fn, init_key(0))
-  for path, leaf in jax.tree_util.tree_flatten_with_path(abstract)[0]:
+def _traced_init(init_fn: Callable[[jax.Array], State], mesh, seed: int):
+  """`init_fn` traced once for `seed`'s key, its state replicated on `mesh`: `.out_info` is
+  the state's shapes and dtypes (to restore a checkpoint into), `.lower()` compiles it (a
+  fresh run); refuses typed PRNG keys in the state."""
+  traced = jax.jit(init_fn, out_shardings=sharding.replicated(mesh)).trace(init_key(seed))
+  for path, leaf in jax.tree_util.tree_flatten_with_path(traced.out_info)[0]:
     if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
       raise ValueError(
           f"init_fn state leaf {jax.tree_util.keystr(path)} is a PRNG key; keep "
           "keys out of the train state (train derives them from seed and step)"
       )
-  rep = sharding.replicated(mesh)
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=rep), abstract)
+  return traced
 
 
 def _check_data(data: Mapping[str, Any], batch_size: int) -> int:
@@ -183,18 +184,18 @@ def train(
   m = _check_arguments(workdir, data, batch_size, checkpoint_every, keep)
   mesh = sharding.data_mesh()
   sharding.check_divisible(batch_size, mesh)
-  abstract = _abstract_state(init_fn, mesh)
+  init = _traced_init(init_fn, mesh, seed)
   schedule = (num_epochs, checkpoint_every, keep)
   run_meta = _run_meta(workdir, data, m, batch_size, seed, fingerprint, schedule)
   workdir = Path(workdir)
   workdir.mkdir(parents=True, exist_ok=True)
   data = {k: np.asarray(v) for k, v in data.items()}
-  run = EpochRunner(workdir, init_fn, step_fn, data, batch_size, seed, run_meta, mesh)
+  run = EpochRunner(workdir, step_fn, data, batch_size, seed, run_meta, mesh)
   with (
       checkpointing.Checkpoints(workdir / layout.CHECKPOINTS, keep=keep) as ckpts,
       preemption.Signals() as signals,
   ):
-    state, start, metrics = run.start(ckpts, abstract, on_start)
+    state, start, metrics = run.start(ckpts, init, on_start)
     with preemption.PeerWatch(workdir / layout.CHECKPOINTS) as watch:
       try:
         state = run.epochs(

@@ -24,7 +24,7 @@ def _add_a_later_step(run_dir, step: int) -> None:
   """Saves checkpoint `step` of a diffusion run: its EMA parameters (all the loader reads)
   scaled by 1.01, with the run's fingerprint (a training epoch, without the training)."""
   config = loaders.read_run_config(run_dir, DiffusionRunConfig, "diffusion")
-  abstract = {"ema_params": loaders.abstract_params(unet1d.init_unet, config.model)}
+  abstract = {"ema_params": unet1d.abstract_params(config.model)}
   tree, fingerprint = loaders.restore_latest(run_dir, abstract)
   later = {"ema_params": jax.tree.map(lambda x: x * 1.01, tree["ema_params"])}
   with checkpointing.Checkpoints(run_dir / layout.CHECKPOINTS) as ckpts:

@@ -197,3 +197,24 @@ def test_conditioning_vector_required_iff_configured():
   g0, p0 = unet1d.init_unet(TINY, jax.random.key(8))
   with pytest.raises(ValueError, match="cond_dim=0"):
     unet1d.apply_unet(g0, p0, x, t, q, cond=jnp.zeros((3, 13)))
+
+
+def test_abstract_build_matches_init_and_runs_once_per_config():
+  """`abstract_params` has init's shapes and dtypes, a fresh dict each call; the graphdef
+  merges with init's parameters to the same forward pass; one build per config."""
+  cfg = dataclasses.replace(TINY, base_channels=24)  # a config no other test builds
+  graphdef, params = unet1d.init_unet(cfg, jax.random.key(1))
+  before = unet1d.functional._abstract.cache_info()
+  abstract = unet1d.abstract_params(cfg)
+  assert jax.tree.map(lambda a: (a.shape, a.dtype), abstract) == jax.tree.map(
+      lambda p: (p.shape, p.dtype), params
+  )
+  abstract.clear()  # the caller's dict: the next call is not affected
+  assert unet1d.abstract_params(cfg).keys() == params.keys()
+  x, t, q = _inputs()
+  np.testing.assert_array_equal(
+      unet1d.apply_unet(unet1d.make_graphdef(cfg), params, x, t, q),
+      unet1d.apply_unet(graphdef, params, x, t, q),
+  )
+  after = unet1d.functional._abstract.cache_info()
+  assert (after.misses - before.misses, after.hits - before.hits) == (1, 2)

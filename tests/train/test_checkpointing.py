@@ -2,6 +2,7 @@
 errors users see."""
 
 import logging
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -192,3 +193,30 @@ def test_a_kill_between_commit_and_manifest_resumes_from_the_step_before(tmp_pat
   assert sorted(p.name for p in tmp_path.iterdir()) == ["1"]
   _, meta = checkpointing.load_latest(tmp_path, _abstract(_state()))
   assert meta == {"step": 1}
+
+
+def test_metadata_is_read_once_per_step_content(tmp_path, monkeypatch):
+  """orbax's metadata (every array opened) is read once for a step however often it is
+  loaded; a step saved again with other values is read again; each caller gets its own
+  metadata dict."""
+  calls = []
+  real = checkpointing.ocp.metadata
+  monkeypatch.setattr(
+      checkpointing.ocp, "metadata", lambda *a, **k: calls.append(a) or real(*a, **k)
+  )
+  state = _state()
+  with checkpointing.Checkpoints(tmp_path / "a") as ckpts:
+    ckpts.save(1, state, {"q": [1]})
+  reader = checkpointing.Checkpoints(tmp_path / "a", writable=False)
+  _, meta = reader.load(1, _abstract(state))
+  meta["q"].append(2)  # the caller's copy
+  restored, meta = reader.load(1, _abstract(state))
+  assert (len(calls), meta) == (1, {"q": [1]})
+  other = jax.tree.map(lambda x: x + 1, state)
+  for step_dir in (tmp_path / "a").iterdir():
+    shutil.rmtree(step_dir)
+  with checkpointing.Checkpoints(tmp_path / "a") as ckpts:
+    ckpts.save(1, other, {"q": [1]})
+  restored, _ = checkpointing.Checkpoints(tmp_path / "a", writable=False).load(1, _abstract(state))
+  assert len(calls) == 2
+  np.testing.assert_array_equal(restored["params"]["w"], other["params"]["w"])
