@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from cvmdx_jax import constants
-from cvmdx_jax.data import highd, sumo_network
+from cvmdx_jax.data import csv_text, highd, sumo_network
 from cvmdx_jax.errors import UserError
 from cvmdx_jax.storage import atomic
 
@@ -133,7 +133,7 @@ def _neighbours(t: pd.DataFrame) -> dict:
 
 def _write_csv(frame: pd.DataFrame, path: Path) -> None:
   with atomic.writing(path, "w") as f:
-    frame.to_csv(f, index=False, float_format="%.2f")
+    f.write(csv_text.table_csv(frame))  # pandas' float_format="%.2f" text, ~3x faster
 
 
 def export_recording(fcd: pd.DataFrame, cfg, plan, out_dir: Path) -> int:
