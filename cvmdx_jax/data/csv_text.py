@@ -1,8 +1,8 @@
 """A table's CSV text, byte for byte as `DataFrame.to_csv(index=False, float_format="%.2f")`
-writes it, about 3x faster: pandas calls a Python formatter and a missing-value check per
-float (6.9 s for one SUMO recording's 176,000 x 25 tracks table on a 2-core CPU under load,
-here 2.1 s), where one list comprehension per column does the same "%.2f" (NaN written as
-pandas' empty `na_rep`). Columns other than float, int, bool or plain text cells, and text
+writes it, 3.5x faster: pandas calls a Python formatter and a missing-value check per float
+(4.3 s for one SUMO recording's 176,000 x 25 tracks table on a 2-core CPU, here 1.2 s), where
+one list comprehension per column does the same "%.2f" (NaN written as pandas' empty
+`na_rep`). Columns other than float, int, bool or plain text cells, and text
 that pandas would quote, leave the whole table to pandas.
 """
 
