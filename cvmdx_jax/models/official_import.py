@@ -190,7 +190,7 @@ def params_from_state_dict(
     state: dict[str, np.ndarray], cfg: UNetConfig, where: str = "state dict"
 ):
   """The U-Net parameters (the pytree of `unet1d.init_unet(cfg, key)[1]`); every
-  shape is compared with the architecture's (`jax.eval_shape`) before any is built.
+  shape is compared with the architecture's (`unet1d.abstract_params`) before any is built.
 
   Raises:
     OfficialCheckpointError: a parameter missing, left over, or of another shape; the

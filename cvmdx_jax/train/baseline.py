@@ -223,7 +223,7 @@ def train(config: BaselineRunConfig, workdir: str | os.PathLike):
   cls_weight = config.loss.cls_weight
   val_shapes = jax.eval_shape(
       lambda p: evaluate(graphdef, p, model_cfg, val, cls_weight),
-      jax.eval_shape(lambda k: mc.init(model_cfg, k)[1], jax.random.key(0)),
+      mc.abstract_params(model_cfg),
   )
 
   return loop.train(

@@ -144,7 +144,7 @@ def train(config: MDNRunConfig, workdir: str | os.PathLike):
   graphdef = mdn.make_graphdef(model_cfg)
   val_shapes = jax.eval_shape(
       lambda p: evaluate(graphdef, p, model_cfg, val),
-      jax.eval_shape(lambda k: mdn.init(model_cfg, k)[1], jax.random.key(0)),
+      mdn.abstract_params(model_cfg),
   )
 
   return loop.train(
