@@ -147,6 +147,8 @@ def _sampling() -> ml_collections.ConfigDict:
   sampling.hypotheses.kmeans_iters = 10  # Lloyd steps of "kmeans"
   # weight of the 5 s position in the k-means distance (0 = mean over the 125 steps)
   sampling.hypotheses.endpoint_weight = 0.0
+  # p(c) = share^t / sum over the hypotheses (1: the paper's share of samples)
+  sampling.hypotheses.prob_temperature = 1.0
   return sampling
 
 
@@ -187,3 +189,4 @@ def _demo(config: ml_collections.ConfigDict) -> None:
   config.sampling.num_samples = 64  # docs/results.md#demo-choices, hypotheses
   config.sampling.hypotheses.method = "kmeans"
   config.sampling.hypotheses.endpoint_weight = 0.5
+  config.sampling.hypotheses.prob_temperature = 0.6  # docs/results.md#demo-choices, p(c)

@@ -43,6 +43,7 @@ from cvmdx_jax.evaluation import (
     figures,
     learned_baseline,
     prediction_cache,
+    prob_calibration,
     quality,
     quality_tables,
     regions,
@@ -87,6 +88,13 @@ _MAX_CAL = flags.DEFINE_integer(
     "max_calibration", 600, "Class-balanced subset of each calibration split.", lower_bound=3
 )
 _SEED = flags.DEFINE_integer("seed", 0, "Sampling, Monte Carlo and bootstrap seed.", lower_bound=0)
+_TEMPERATURE = flags.DEFINE_float(
+    "prob_temperature",
+    None,
+    "p(c) temperature of every run's hypotheses instead of the run's own "
+    "(experiments/calibrate_probs.py chooses one on val).",
+    lower_bound=1e-3,
+)
 _REUSE = flags.DEFINE_bool(
     "reuse",
     False,
@@ -119,6 +127,8 @@ def _subset(scenarios, size: int):
 
 def _score_run(run: Path, large: dict, calibration, workdir: Path, log):
   predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
+  if _TEMPERATURE.value is not None:
+    predictor = prob_calibration.with_temperature(predictor, _TEMPERATURE.value)
   predict = prediction_cache.cached(
       predictor, workdir / "predictions", run.name, prediction_cache.model_id(predictor)
   )

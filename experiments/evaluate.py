@@ -5,7 +5,8 @@
       --workdir=runs/demo/eval
 `--sampler=ddim --steps=10` samples with the paper's DDIM-10 instead of the run's sampler.
 `--intent_prior=4,1,1` reweights an intent-conditioned denoiser's maneuver draws (keep lane,
-lcr, lcl) for data whose class shares differ from its train split's.
+lcr, lcl) for data whose class shares differ from its train split's. `--prob_temperature=0.6`
+predicts p(c) with that temperature (experiments/calibrate_probs.py chooses it on val).
 `--baseline_dir=runs/demo/baseline` adds the rows of a trained multiple-choice baseline
 (experiments/train_baseline.py, on the same tokeniser); `--mdn_dir=runs/demo/mdn` those of
 the mixture density network (experiments/train_mdn.py). results.md ends with the paired
@@ -62,6 +63,13 @@ _SAMPLER = flags.DEFINE_enum(
     "dpmpp2m).",
 )
 _STEPS = flags.DEFINE_integer("steps", None, "Sampling steps instead of the run's.", lower_bound=1)
+_TEMPERATURE = flags.DEFINE_float(
+    "prob_temperature",
+    None,
+    "p(c) temperature of the hypotheses instead of the run's "
+    "(experiments/calibrate_probs.py chooses one on val).",
+    lower_bound=1e-3,
+)
 _PRIOR = flags.DEFINE_list(
     "intent_prior",
     None,
@@ -80,7 +88,13 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"Unexpected arguments: {argv[1:]}")
   overrides = {
-      k: v for k, v in (("sampler", _SAMPLER.value), ("steps", _STEPS.value)) if v is not None
+      k: v
+      for k, v in (
+          ("sampler", _SAMPLER.value),
+          ("steps", _STEPS.value),
+          ("prob_temperature", _TEMPERATURE.value),
+      )
+      if v is not None
   }
   if _PRIOR.value is not None:
     try:

@@ -77,6 +77,13 @@ CASES = [
     ("benchmark_costs", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("benchmark_quality", "--workdir={NEW} --nosuch=1", "'nosuch'"),
     ("benchmark_stack", "--nosuch=1", "'nosuch'"),
+    ("calibrate_probs", f"{EVAL} --nosuch=1", "'nosuch'"),
+    (
+        "calibrate_probs",
+        "--tokenizer_dir={T}/nosuch --diffusion_dir={T}/empty --data_dir={T}/empty",
+        "--tokenizer_dir=",
+    ),
+    ("calibrate_probs", f"{EVAL} --max_scenarios=-1", "--max_scenarios=-1"),
     ("codebook_health", f"{TOK} --workdir={{NEW}} --nosuch=1", "'nosuch'"),
     (
         "codebook_health",
@@ -125,6 +132,7 @@ CASES = [
     ("evaluate", f"{EVAL} --workdir={{NEW}} --seed=4294967296", "--seed=4294967296"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --sampler=euler", "--sampler=euler"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --steps=0", "--steps=0"),
+    ("evaluate", f"{EVAL} --workdir={{NEW}} --prob_temperature=0", "--prob_temperature=0"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=1,2", "--intent_prior=1,2"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=0,1,1", "--intent_prior=0,1,1"),
     ("evaluate", f"{EVAL} --workdir={{NEW}} --intent_prior=a,1,1", "--intent_prior=a,1,1"),

@@ -81,6 +81,10 @@ class HypothesisConfig:
     kmeans_iters: Lloyd steps of "kmeans" (fixed; no early stop).
     endpoint_weight: weight of the final step in the k-means distance, in [0, 1]
       (`kmeans.step_weights`; 0 = mean squared displacement over all steps).
+    prob_temperature: p(c) proportional to (share of samples)^prob_temperature over the
+      non-empty hypotheses (`hypotheses.temper`); 1 = the paper's share. Below 1 flattens
+      the shares toward calibrated probabilities that a hypothesis is the closest
+      (temperature scaling on val, `evaluation.prob_calibration`).
   """
 
   method: str = "bic"
@@ -93,6 +97,7 @@ class HypothesisConfig:
   em_iters: int = 30
   kmeans_iters: int = 10
   endpoint_weight: float = 0.0
+  prob_temperature: float = 1.0
 
   RANGES: ClassVar = {
       "c_max": POSITIVE,
@@ -103,6 +108,7 @@ class HypothesisConfig:
       "em_iters": NON_NEGATIVE,
       "kmeans_iters": NON_NEGATIVE,
       "endpoint_weight": FRACTION,
+      "prob_temperature": POSITIVE,
   }
 
   def __post_init__(self):

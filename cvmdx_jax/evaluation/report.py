@@ -204,7 +204,8 @@ def run(
       left out (a printed note); give the guided denoiser it was distilled from.
     figures_per_class: scenarios drawn per class in the prediction figures.
     sampling_overrides: `SamplingConfig` fields set instead of the diffusion run's
-      (e.g. {"sampler": "ddim", "steps": 10}).
+      (e.g. {"sampler": "ddim", "steps": 10}), and "prob_temperature" for the hypotheses'
+      `HypothesisConfig.prob_temperature`.
     suffix: appended to every file name (`metrics<suffix>.json`, ...), so that several
       splits can be reported into one directory.
     baseline_dir: a trained multiple-choice baseline (`cvmdx_jax.train.baseline`) whose

@@ -6,7 +6,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cvmdx_jax.evaluation import learned_baseline
+from cvmdx_jax.evaluation import learned_baseline, prob_calibration
 from cvmdx_jax.inference import mdn_baseline
 from cvmdx_jax.inference.bundles import load_baseline, load_denoiser
 from cvmdx_jax.inference.predictor import IncompatibleRunsError, Predictor
@@ -60,10 +60,14 @@ def load(
   """Loads and checks the runs of a report (arguments as in `run`); the tokeniser is
   restored once. Raises what `Predictor.load` and `learned_baseline.check_tokenizer` raise."""
   predictor = Predictor.load(tokenizer_dir, diffusion_dir)
-  if sampling_overrides:
+  overrides = dict(sampling_overrides or {})
+  temperature = overrides.pop("prob_temperature", None)
+  if overrides:
     predictor = dataclasses.replace(
-        predictor, sampling=dataclasses.replace(predictor.sampling, **sampling_overrides)
+        predictor, sampling=dataclasses.replace(predictor.sampling, **overrides)
     )
+  if temperature is not None:
+    predictor = prob_calibration.with_temperature(predictor, temperature)
   baseline = None if baseline_dir is None else load_baseline(baseline_dir)
   mdn = None if mdn_dir is None else mdn_baseline.load_mdn(mdn_dir)
   for model, where in ((baseline, baseline_dir), (mdn, mdn_dir)):

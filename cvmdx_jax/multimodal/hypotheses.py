@@ -11,6 +11,11 @@ nothing per scenario runs in Python and scikit-learn is not used.
 partition of the trajectories in metres, built to cover the true future (minFDE_K) where
 BIC keeps a single mode in most highway scenarios; p(c) = share of samples as well.
 
+`HypothesisConfig.prob_temperature` t (beyond the paper; 1 keeps the share): p(c) =
+share^t / sum_c' share^t (`temper`). A share is how often the model samples a mode, not how
+often its mean is the one closest to the truth; with t < 1 chosen on val by the log loss of
+the closest hypothesis (`evaluation.prob_calibration`), p(c) is that probability, calibrated.
+
 Hypothesis slots are ordered by probability, descending (ties keep the lower
 component index), so slot 0 is the most likely hypothesis and slots
 >= num_modes are empty (probability 0, mean 0).
@@ -39,8 +44,8 @@ class Hypotheses:
     labels: (B, N) int in [0, num_modes), the hypothesis of each sample.
     means: (B, c_max, T, 2) mean trajectory of each hypothesis's samples, in
       the input's metres; 0 for empty slots.
-    probs: (B, c_max) share of samples per hypothesis, descending, 0 for
-      empty slots, summing to 1.
+    probs: (B, c_max) share of samples per hypothesis (tempered: `temper`), descending,
+      0 for empty slots, summing to 1.
     bic: (B, c_max) BIC of the fit with C = 1..c_max (+inf if non-finite); NaN for
       "kmeans", which fits no mixture.
   """
@@ -123,6 +128,20 @@ def _kmeans_one(trajectories, config: HypothesisConfig):
   )
 
 
+def temper(probs: jax.Array, temperature: float) -> jax.Array:
+  """probs (..., K) raised to `temperature` and renormalised over the non-empty (> 0)
+  entries; empty entries stay 0, the order is kept. `temperature` 1 returns `probs`."""
+  if temperature == 1.0:
+    return probs
+  present = probs > 0
+  powered = jnp.where(present, jnp.power(jnp.where(present, probs, 1.0), temperature), 0.0)
+  return powered / jnp.sum(powered, axis=-1, keepdims=True)
+
+
+def _tempered(hyp: Hypotheses, config: HypothesisConfig) -> Hypotheses:
+  return dataclasses.replace(hyp, probs=temper(hyp.probs, config.prob_temperature))
+
+
 def fit_hypotheses(
     trajectories: jax.Array, c_max: int | None = None, config: HypothesisConfig | None = None
 ) -> Hypotheses:
@@ -154,10 +173,10 @@ def fit_hypotheses(
   if not jnp.issubdtype(trajectories.dtype, jnp.floating):
     raise UserError(f"fit_hypotheses: trajectories must be floating, got {trajectories.dtype}")
   if config.method == "kmeans":
-    return jax.vmap(lambda t: _kmeans_one(t, config))(trajectories)
+    return _tempered(jax.vmap(lambda t: _kmeans_one(t, config))(trajectories), config)
   if config.c_max > trajectories.shape[1]:
     raise UserError(
         f"fit_hypotheses: c_max={config.c_max} exceeds N={trajectories.shape[1]} samples"
     )
   points = embed(trajectories, config)
-  return jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories)
+  return _tempered(jax.vmap(lambda p, t: _select_one(p, t, config))(points, trajectories), config)

@@ -131,3 +131,36 @@ def test_c_max_and_bad_input():
     HypothesisConfig(scaling="zscore")
   with pytest.raises(ValueError, match="reg_covar"):
     HypothesisConfig(reg_covar=0.0)
+
+
+def test_temper_is_the_renormalised_power_and_keeps_empty_slots_and_order():
+  shares = jnp.asarray([[0.5, 0.3, 0.2], [0.75, 0.25, 0.0]])
+  out = np.asarray(hypotheses.temper(shares, 0.5))
+  root = np.sqrt([0.5, 0.3, 0.2])
+  np.testing.assert_allclose(out[0], root / root.sum(), rtol=1e-6)
+  np.testing.assert_allclose(out[1], [np.sqrt(3) / (np.sqrt(3) + 1), 1 / (np.sqrt(3) + 1), 0.0])
+  assert out[1, 2] == 0.0 and np.all(np.diff(out, axis=1) <= 0)
+  assert hypotheses.temper(shares, 1.0) is shares  # the paper's share, untouched
+  sharp = np.asarray(hypotheses.temper(shares, 3.0))[0]
+  np.testing.assert_allclose(sharp, np.array([0.125, 0.027, 0.008]) / 0.16, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["bic", "kmeans"])
+def test_prob_temperature_moves_only_the_probabilities(sets, method):
+  trajectories = sets[0][:40]
+  plain = fit_hypotheses(trajectories, config=HypothesisConfig(method=method))
+  tempered = fit_hypotheses(
+      trajectories, config=HypothesisConfig(method=method, prob_temperature=0.6)
+  )
+  for field in ("num_modes", "num_components", "labels", "means"):
+    np.testing.assert_array_equal(getattr(tempered, field), getattr(plain, field))
+  np.testing.assert_allclose(tempered.probs, hypotheses.temper(plain.probs, 0.6), rtol=1e-6)
+  # flatter than the shares, still a distribution in descending order
+  assert np.all(np.asarray(tempered.probs)[:, 0] <= np.asarray(plain.probs)[:, 0] + 1e-7)
+  np.testing.assert_allclose(np.asarray(tempered.probs).sum(axis=1), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.5])
+def test_prob_temperature_must_be_positive(bad):
+  with pytest.raises(ValueError, match="prob_temperature"):
+    HypothesisConfig(prob_temperature=bad)

@@ -88,6 +88,8 @@ def test_run_configs_become_the_typed_configs():
   # chosen on val (docs/log, "Hypotheses for coverage"); the paper keeps BIC over 9
   assert (demo.sampling.num_samples, demo.sampling.hypotheses.method) == (64, "kmeans")
   assert demo.sampling.hypotheses.endpoint_weight == 0.5
+  # p(c) temperature chosen on val (docs/log/2026-12-06-prob-temperature.md); paper: shares
+  assert demo.sampling.hypotheses.prob_temperature == 0.6
   for preset in ("paper", "reference"):
     sampling = DiffusionRunConfig.from_config(diffusion_config.get_config(preset)).sampling
     assert (sampling.num_samples, sampling.hypotheses) == (9, HypothesisConfig())
@@ -129,6 +131,7 @@ def _with(config, field: str, value):
         ("model.dropout", float("nan"), "must be finite"),
         ("sampling.guidance.t_c", 0.0, "must be > 0"),
         ("sampling.hypotheses.endpoint_weight", 1.5, "must be in [0, 1]"),
+        ("sampling.hypotheses.prob_temperature", 0.0, "must be > 0"),
         ("seed", 2**32, "must be in [0, 2**32)"),
     ],
 )
