@@ -128,13 +128,13 @@ def _frame(flag, value: str | None, first: int, last: int, default: int) -> int:
 
 
 def _accuracy(preds, rec, frames) -> dict:
-  """ADE / FDE (m) of the hypothesis-weighted mean and minADE / minFDE over the hypotheses,
+  """ADE / FDE (m) of the samples' mean and minADE / minFDE over the hypotheses,
   over the predictions whose 5 s after t0 the recording holds."""
   future, known = frames_lib.futures(rec, frames_lib.observable_rows(rec, frames))
   if not known.any():
     return {"count": 0}
   gt, hyps, valid = future[known], preds.means[known], preds.probs[known] > 0
-  mean = preds.weighted_mean[known]
+  mean = preds.mean[known]
   values = {
       "ade": metrics.ade(mean, gt),
       "fde": metrics.fde(mean, gt),

@@ -41,8 +41,10 @@ class VehiclePredictions:
 
   Attributes:
     recording_id, frame, track_id: (M,) provenance of each prediction's t0.
+    mean: (M, 125, 2) the mean of the sampled trajectories (the point prediction), m.
     means: (M, C, 125, 2) hypothesis mean trajectories, image-frame centres, m.
-    probs: (M, C) hypothesis probabilities (0 for empty slots; each row sums to 1).
+    probs: (M, C) hypothesis probabilities (0 for empty slots; each row sums to 1; with a
+      p(c) temperature other than 1, sum_c p_c means_c is not `mean`).
     samples: (M, N, 125, 2) sampled trajectories in the image frame, or None.
     out_of_distribution: (M,) bool, the tokeniser's uncertainty beyond its training range.
   """
@@ -50,6 +52,7 @@ class VehiclePredictions:
   recording_id: np.ndarray
   frame: np.ndarray
   track_id: np.ndarray
+  mean: np.ndarray
   means: np.ndarray
   probs: np.ndarray
   samples: np.ndarray | None
@@ -57,11 +60,6 @@ class VehiclePredictions:
 
   def __len__(self) -> int:
     return len(self.frame)
-
-  @property
-  def weighted_mean(self) -> np.ndarray:
-    """(M, 125, 2) the hypothesis-weighted mean trajectory, sum_c p_c mean_c."""
-    return np.einsum("mc,mctd->mtd", self.probs, self.means)
 
 
 def concatenate(parts) -> VehiclePredictions:
@@ -93,6 +91,7 @@ def predict(
       recording_id=np.asarray(observations.recording_id),
       frame=np.asarray(observations.frame),
       track_id=np.asarray(observations.track_id),
+      mean=to_image(out.prediction.mean),
       means=to_image(hyp.means),
       probs=np.asarray(hyp.probs, np.float64),
       samples=to_image(out.prediction.trajectories) if samples else None,
@@ -162,9 +161,9 @@ def write_table(frame: pd.DataFrame, path) -> None:
 def temporal_consistency(preds: VehiclePredictions, step: int) -> np.ndarray:
   """Change between consecutive predictions of one vehicle: for each prediction at frame f
   with one of the same track at f + `step` (frames, < 125), the mean distance (m) between
-  their hypothesis-weighted means over the steps both cover (times f + step + 1 ..
+  their means (`VehiclePredictions.mean`) over the steps both cover (times f + step + 1 ..
   f + 125). Returns (P,) one value per such pair."""
-  mean = preds.weighted_mean
+  mean = preds.mean
   horizon = mean.shape[1]
   if not 0 < step < horizon:
     raise ValueError(f"temporal_consistency: step {step} not in 1..{horizon - 1}")

@@ -42,6 +42,7 @@ def _predictions(rec, track: int, frame: int, shift_y: float):
       recording_id=np.array([1]),
       frame=np.array([frame]),
       track_id=np.array([track]),
+      mean=np.einsum("mc,mctd->mtd", np.array([[0.7, 0.3]]), means),
       means=means,
       probs=np.array([[0.7, 0.3]]),
       samples=None,

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from cvmdx_jax.data import frames, highd
+from cvmdx_jax.evaluation import prob_calibration
 from cvmdx_jax.inference import observations as obs_lib
 from cvmdx_jax.inference import recording, stream
 from tests.data.conftest import write_recording
@@ -67,13 +68,21 @@ def test_stream_predictions_equal_a_whole_recordings(rec):
     out = online.step(frame, *_frame_input(rec, frame), predict=frame in PREDICTED)
     if out is not None:
       parts.append(out)
-  for name in ("frame", "track_id", "means", "probs"):
+  for name in ("frame", "track_id", "mean", "means", "probs"):
     np.testing.assert_array_equal(
         np.concatenate([getattr(p, name) for p in parts]), getattr(whole, name), name
     )
   # tracks 1-4 at the 7 frames, track 5 (from frame 100) from frame 174 on: 180, 205, 230
   assert summary["predictions"] == len(whole) == 4 * 7 + 3 and summary["vehicles"] == 5
   assert summary["consistency_m"]["pairs"] == 31 - 5  # each track's first frame has none
+
+
+def test_the_point_prediction_is_the_samples_mean_whatever_the_p_temperature(rec):
+  predictor = prob_calibration.with_temperature(_random_predictor(chunk_size=4), 0.5)
+  observations = obs_lib.from_recording(rec, frames.observable_rows(rec, [PREDICTED[0]]))
+  preds = recording.predict(predictor, observations, seed=3, samples=True)
+  np.testing.assert_allclose(preds.mean, preds.samples.mean(axis=1), atol=1e-3)
+  np.testing.assert_allclose(preds.probs.sum(axis=1), 1.0, rtol=1e-6)
 
 
 def test_a_vehicle_that_disappears_is_dropped_and_a_gap_restarts(rec):
@@ -98,6 +107,7 @@ def test_temporal_consistency_by_hand():
       recording_id=np.zeros(3, int),
       frame=np.array([0, 5, 5]),
       track_id=np.array([1, 1, 2]),
+      mean=means[:, 0],
       means=means,
       probs=np.ones((3, 1)),
       samples=None,
