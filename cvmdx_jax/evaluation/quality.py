@@ -17,7 +17,13 @@ import jax
 import numpy as np
 
 from cvmdx_jax import constants
-from cvmdx_jax.evaluation import conformal, metrics, model_scores, predictive, regions
+from cvmdx_jax.evaluation import (
+    conformal,
+    model_scores,
+    predictive,
+    prob_calibration,
+    regions,
+)
 
 CALIBRATION_LEVEL = 0.9  # the region level calibrated and reported with and without delta
 
@@ -55,7 +61,7 @@ def _models(predictor, baseline, mdn_fn, scenarios, seed: int) -> list:
 
 def _closest(model, gt):
   k = model.k_set
-  return np.asarray(metrics.closest_final(k.points, gt, k.weights > 0))
+  return prob_calibration.closest_hypothesis(k.points, k.weights, gt)
 
 
 def _calibrate(model, bandwidths, scenarios, delta, key) -> dict:
