@@ -199,6 +199,10 @@ def _files(workdir: Path, runs: dict, build_s: float, seconds: dict) -> dict:
       "## Calibrated 90 % regions",
       "",
       quality_tables.calibration_table(runs, SCORED),
+      "Per recording, cVMDx's samples (a recording's traffic and drivers are shared by its "
+      "scenarios; experiments/region_groups.py checks groupings across recordings):",
+      "",
+      quality_tables.recording_table(runs, SCORED),
       "## Online 90 % regions (adaptive conformal, truths as they arrive)",
       "",
       quality_tables.online_table(runs, SCORED),

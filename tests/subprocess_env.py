@@ -2,6 +2,8 @@
 subprocesses."""
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -16,3 +18,15 @@ def pythonpath() -> str:
 def environ(**extra: str) -> dict[str, str]:
   """The caller's environment with `pythonpath()` and `extra` (e.g. JAX_PLATFORMS="cpu")."""
   return dict(os.environ, PYTHONPATH=pythonpath(), **extra)
+
+
+def run_script(script: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+  """`experiments/<script>.py args` on the CPU from the repository root, output captured."""
+  return subprocess.run(
+      [sys.executable, f"experiments/{script}.py", *args],
+      cwd=REPO,
+      env=environ(JAX_PLATFORMS="cpu"),
+      capture_output=True,
+      text=True,
+      timeout=timeout,
+  )

@@ -207,6 +207,18 @@ CASES = [
     ("recording_stats", "--data_dir={T}/empty --nosuch=1", "'nosuch'"),
     ("recording_stats", "--data_dir={T}/nosuch", "--data_dir="),
     ("recording_stats", "--data_dir={T}/garbled", "recordings/plans.json"),  # bad JSON
+    (
+        "region_groups",
+        "--run={T}/empty --data_dir={T}/empty --workdir={NEW} --nosuch=1",
+        "'nosuch'",
+    ),
+    ("region_groups", "--run={T}/nosuch --data_dir={T}/empty --workdir={NEW}", "--run="),
+    ("region_groups", "--run={T}/empty --data_dir={T}/empty --workdir={NEW}", "--run: "),
+    (
+        "region_groups",
+        "--run={T}/empty --data_dir={T}/empty --workdir={NEW} --max_scenarios=-1",
+        "--max_scenarios=-1",
+    ),
     ("sampler_pareto", "--out_dir={NEW} --nosuch=1", "'nosuch'"),
     ("sampler_pareto", "--out_dir={NEW} --num_scenarios=-1", "--num_scenarios=-1"),
     (

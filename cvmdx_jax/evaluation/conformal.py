@@ -38,23 +38,24 @@ def calibrated_level(val_scores, level: float) -> float:
   return 1.0 if rank > len(scores) else float(scores[rank - 1])
 
 
-def delta_edges(val_delta, bins: int = DELTA_BINS) -> np.ndarray:
-  """Inner quantile edges (bins - 1,) of val's delta."""
-  return np.quantile(np.asarray(val_delta, np.float64), np.arange(1, bins) / bins)
+def bin_edges(val_x, bins: int = DELTA_BINS) -> np.ndarray:
+  """Inner quantile edges (bins - 1,) of a covariate on val (delta in the reports)."""
+  return np.quantile(np.asarray(val_x, np.float64), np.arange(1, bins) / bins)
 
 
-def delta_levels(val_scores, val_delta, delta, levels, bins: int = DELTA_BINS) -> np.ndarray:
-  """Calibrated levels per scenario (M, L): each scenario takes those of its delta bin,
-  calibrated on the val scenarios of that bin."""
-  edges = delta_edges(val_delta, bins)
-  val_bin = np.digitize(np.asarray(val_delta), edges)
+def mondrian_levels(val_scores, val_x, x, levels, bins: int = DELTA_BINS) -> np.ndarray:
+  """Calibrated levels per scenario (M, L): each scenario takes those of its bin of the
+  covariate x (quantile bins of val_x), calibrated on the val scenarios of that bin (1.0
+  for a bin without val scenarios)."""
+  edges = bin_edges(val_x, bins)
+  val_bin = np.digitize(np.asarray(val_x), edges)
   table = np.array(
       [
           [calibrated_level(np.asarray(val_scores)[val_bin == b], a) for a in levels]
           for b in range(bins)
       ]
   )
-  return table[np.digitize(np.asarray(delta), edges)]
+  return table[np.digitize(np.asarray(x), edges)]
 
 
 def hypothesis_scores(probs, closest) -> np.ndarray:

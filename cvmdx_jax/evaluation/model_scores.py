@@ -15,7 +15,9 @@ Gaussian per cluster, `regions.components`). `scenario_scores` returns, per scen
   50 / 90 / 95 % regions;
 - `ade`, `fde`, `sq_err_<s>s` (m, m^2) of the mean trajectory (RMSE at s = the root of the
   mean of `sq_err_<s>s`);
-- given a K-set: `min_ade`, `min_fde`, `miss_rate`, `brier_min_fde` (`scoring.best_of_k_errors`).
+- given a K-set: `min_ade`, `min_fde`, `miss_rate`, `brier_min_fde` (`scoring.best_of_k_errors`)
+  and `closest_log_loss` (nats: -log p of the hypothesis closest at 5 s, the one Brier-minFDE
+  charges (1 - p)^2 for; `prob_calibration`).
 """
 
 import dataclasses
@@ -24,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cvmdx_jax.evaluation import metrics, probabilistic, regions, scoring
+from cvmdx_jax.evaluation import metrics, prob_calibration, probabilistic, regions, scoring
 from cvmdx_jax.inference.distributions import GaussianMixture, WeightedSamples
 
 ES_SAMPLES = 64  # draws of a GaussianMixture for its energy score
@@ -129,5 +131,8 @@ def scenario_scores(
         min_fde=np.asarray(best["fde"]),
         miss_rate=np.asarray(best["miss_rate"]),
         brier_min_fde=np.asarray(best["brier_min_fde"]),
+        closest_log_loss=prob_calibration.closest_log_loss(
+            probs, prob_calibration.closest_hypothesis(model.k_set.points, probs, gt)
+        ),
     )
   return out

@@ -25,16 +25,22 @@ def closest_hypothesis(means, probs, gt) -> np.ndarray:
   return np.asarray(metrics.closest_final(means, gt, probs > 0))
 
 
+def closest_log_loss(probs, closest) -> np.ndarray:
+  """-log p of the closest hypothesis (nats, floored at p = 1e-6) per scenario: probs (M,
+  K), closest (M,) int -> (M,)."""
+  p = np.asarray(probs, np.float64)[np.arange(len(closest)), np.asarray(closest)]
+  return -np.log(np.maximum(p, _FLOOR))
+
+
 def log_losses(shares, closest, temperatures=TEMPERATURES) -> np.ndarray:
   """Mean -log p(closest) (nats) over scenarios for each temperature: shares (M, K) the
   untempered p(c) (temperature 1), closest (M,) int -> (len(temperatures),)."""
-  shares = np.asarray(shares, np.float64)
-  rows = np.arange(len(shares))
-  out = []
-  for t in temperatures:
-    p = np.asarray(hypotheses.temper(shares, float(t)), np.float64)[rows, closest]
-    out.append(float(np.mean(-np.log(np.maximum(p, _FLOOR)))))
-  return np.asarray(out)
+  return np.asarray(
+      [
+          float(np.mean(closest_log_loss(hypotheses.temper(shares, float(t)), closest)))
+          for t in temperatures
+      ]
+  )
 
 
 def choose(losses, temperatures=TEMPERATURES) -> float:

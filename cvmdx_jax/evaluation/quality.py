@@ -64,15 +64,30 @@ def _closest(model, gt):
   return prob_calibration.closest_hypothesis(k.points, k.weights, gt)
 
 
+def conformity_scores(model, bandwidths, gt, key) -> np.ndarray:
+  """(M, H) u of the true positions gt (M, 125, 2) at each of `regions.HORIZON_STEPS`
+  (`regions.hdr`), the Monte Carlo key folded with the horizon's index."""
+  return np.stack(
+      [
+          regions.hdr(
+              jax.random.fold_in(key, i),
+              model_scores.density_at(model, bandwidths, i),
+              gt[:, step],
+              (CALIBRATION_LEVEL,),
+          )[0]
+          for i, step in enumerate(regions.HORIZON_STEPS)
+      ],
+      axis=1,
+  )
+
+
 def _calibrate(model, bandwidths, scenarios, delta, key) -> dict:
   """Val u per horizon -> calibrated levels (plain and per delta tercile), p(c) threshold."""
   gt = np.asarray(scenarios.future, np.float32)
-  edges = conformal.delta_edges(delta)
+  edges = conformal.bin_edges(delta)
   bins = np.digitize(delta, edges)
   plain, by_delta = [], []
-  for i, step in enumerate(regions.HORIZON_STEPS):
-    mix = model_scores.density_at(model, bandwidths, i)
-    u, _ = regions.hdr(jax.random.fold_in(key, i), mix, gt[:, step], (CALIBRATION_LEVEL,))
+  for u in conformity_scores(model, bandwidths, gt, key).T:
     plain.append(conformal.calibrated_level(u, CALIBRATION_LEVEL))
     by_delta.append(
         [

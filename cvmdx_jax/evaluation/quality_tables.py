@@ -9,7 +9,7 @@ difference is "better" / "worse" only where its interval excludes 0.
 import numpy as np
 
 from cvmdx_jax import constants
-from cvmdx_jax.evaluation import intervals, predictive, regions
+from cvmdx_jax.evaluation import intervals, predictive, region_groups, regions
 
 SUBSETS = ("all",) + constants.CLASS_NAMES
 LEARNED = ("mlp_heads", "mdn")
@@ -31,6 +31,7 @@ _SUMMARY = (
     ("min_ade", "minADE_K"),
     ("min_fde", "minFDE_K"),
     ("brier_min_fde", "Brier-minFDE"),
+    ("closest_log_loss", "log loss p(closest)"),
     ("miss_rate", "miss rate"),
     ("cover_50_5s", "cover 50 % 5 s"),
     ("cover_90_5s", "cover 90 % 5 s"),
@@ -81,7 +82,7 @@ def comparisons(models) -> list:
   for b in (m for m in HEADS if m in models):
     rows += [
         ("cvmdx_hypotheses", b, metric, "all", "mean")
-        for metric in ("energy_score", "brier_min_fde", "min_fde")
+        for metric in ("energy_score", "brier_min_fde", "min_fde", "closest_log_loss")
     ]
   for b in (m for m in BASELINES if m in models):
     rows += [
@@ -98,6 +99,8 @@ def differences(runs: dict, split: str) -> list:
   out = []
   first = next(iter(runs.values())).splits[split]
   for a, b, metric, subset, kind in comparisons([m for m in first if m != "meta"]):
+    if metric not in first[a] or metric not in first[b]:
+      continue  # scores saved before the metric existed (--reuse)
     by_seed = {}
     for seed, scores in runs.items():
       data = scores.splits[split]
@@ -184,6 +187,41 @@ def calibration_table(runs: dict, splits) -> str:
           + " | ".join(_fmt(c, "{:.3f}") for c in cells)
           + f" | {areas} |"
       )
+  return "\n".join(lines) + "\n"
+
+
+def recording_table(runs: dict, splits, model: str = "cvmdx_samples") -> str:
+  """Coverage of `model`'s calibrated 90 % regions (plain, per delta tercile) at 1..5 s per
+  recording of each split, mean over seeds (the seeds score the same scenarios)."""
+  h = regions.HORIZONS_S
+  lines = [
+      "| split | recording | scenarios | "
+      + " | ".join(f"cal {s} s" for s in h)
+      + " | "
+      + " | ".join(f"delta {s} s" for s in h)
+      + " |",
+      "|---|---|---|" + "---|" * (2 * len(h)),
+  ]
+  for split in splits:
+    found = [r.splits[split] for r in runs.values() if model in r.splits[split]]
+    if not found:
+      continue
+    cover = {
+        k: np.mean(
+            [
+                region_groups.recording_coverage(f[model][k], f["meta"]["recording_id"])[2]
+                for f in found
+            ],
+            axis=0,
+        )
+        for k in [f"{kind}_cover_{s}s" for kind in ("cal", "delta") for s in h]
+    }
+    ids, counts, _ = region_groups.recording_coverage(
+        found[0][model][f"cal_cover_{h[0]}s"], found[0]["meta"]["recording_id"]
+    )
+    for r, (rec, n) in enumerate(zip(ids, counts)):
+      cells = " | ".join(f"{cover[k][r]:.3f}" for k in cover)
+      lines.append(f"| {split} | {rec} | {n} | {cells} |")
   return "\n".join(lines) + "\n"
 
 

@@ -20,11 +20,11 @@ def test_calibration_restores_coverage_of_overconfident_scores():
   assert abs(np.mean(test <= level) - 0.9) < 0.015
 
 
-def test_delta_levels_grow_with_the_bin_scale():
+def test_mondrian_levels_grow_with_the_bin_scale():
   rng = np.random.default_rng(1)
   delta = rng.uniform(0, 3, 3000)
   scores = np.clip(rng.uniform(0, 1, 3000) * (0.3 + delta / 3.0), 0, 1)
-  lv = conformal.delta_levels(scores, delta, np.array([0.1, 1.5, 2.9]), (0.9,))
+  lv = conformal.mondrian_levels(scores, delta, np.array([0.1, 1.5, 2.9]), (0.9,))
   assert lv.shape == (3, 1) and lv[0, 0] < lv[1, 0] < lv[2, 0]
 
 

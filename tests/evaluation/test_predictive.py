@@ -28,3 +28,6 @@ def test_mdn_modes_are_its_means_with_their_weights_scored_as_a_discrete_set():
   scores = model_scores.scenario_scores(modes, gt, [(0.0, 0.1, 0.1)] * 5, jax.random.key(0))
   np.testing.assert_allclose(scores["energy_score"], [0.125], rtol=1e-5)
   np.testing.assert_allclose(scores["min_fde"], [0.0], atol=1e-6)
+  # the truth is on the second mode: Brier-minFDE charges (1 - 0.75)^2, the log loss -log 0.75
+  np.testing.assert_allclose(scores["brier_min_fde"], [0.0625], atol=1e-6)
+  np.testing.assert_allclose(scores["closest_log_loss"], [-np.log(0.75)], rtol=1e-6)

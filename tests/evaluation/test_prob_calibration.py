@@ -65,3 +65,10 @@ def test_with_temperature_changes_only_the_hypotheses_temperature():
       sampling,
       hypotheses=dataclasses.replace(sampling.hypotheses, prob_temperature=0.6),
   )
+
+
+def test_closest_log_loss_per_scenario_by_hand():
+  probs = np.array([[0.5, 0.3, 0.2], [0.0, 1.0, 0.0]])
+  np.testing.assert_allclose(
+      prob_calibration.closest_log_loss(probs, np.array([2, 0])), [-np.log(0.2), -np.log(1e-6)]
+  )

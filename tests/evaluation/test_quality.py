@@ -39,7 +39,7 @@ def _world(m, seed):
       v0=speed,
       psi0=np.zeros(m),
       label=label,
-      recording_id=np.ones(m),
+      recording_id=1 + (np.arange(m) >= m // 3),  # two recordings
       track_id=np.arange(m) // 2,
   )
   return scen, shape
@@ -101,6 +101,10 @@ def test_true_distribution_wins_and_calibrated_regions_cover():
   )
   assert "cVMDx, N samples" in quality_tables.calibration_table(runs, ["test"])
   assert "| cVMDx, N samples | test | " in quality_tables.online_table(runs, ["test"])
+  by_recording = quality_tables.recording_table(runs, ["test"]).splitlines()[2:]
+  assert [line.split(" | ")[1:3] for line in by_recording] == [["1", "100"], ["2", "200"]]
+  covered = sum(int(line.split(" | ")[2]) * float(line.split(" | ")[3]) for line in by_recording)
+  assert covered == pytest.approx(np.sum(row["cal_cover_1s"]), abs=0.2)  # 3 decimals
 
 
 def test_stream_times_put_recordings_one_after_another():

@@ -2,18 +2,14 @@
 grid, the chosen one the lowest log loss, and the runs' predictions at it."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cvmdx_jax.data import dataset
 from cvmdx_jax.evaluation import prob_calibration, report_models
-from tests.subprocess_env import environ
+from tests.subprocess_env import run_script
 
-REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings(  # the tiny runs put a few scenarios out of range
     "ignore::cvmdx_jax.inference.predictor.OutOfDistributionWarning"
 )
@@ -21,21 +17,13 @@ pytestmark = pytest.mark.filterwarnings(  # the tiny runs put a few scenarios ou
 
 def test_the_table_and_the_chosen_temperature(tiny_runs, tmp_path):
   out = tmp_path / "calibration.json"
-  proc = subprocess.run(
-      [
-          sys.executable,
-          "experiments/calibrate_probs.py",
-          f"--tokenizer_dir={tiny_runs / 'tokenizer'}",
-          f"--diffusion_dir={tiny_runs / 'diffusion'}",
-          f"--data_dir={tiny_runs / 'data'}",
-          "--split=val",
-          f"--out={out}",
-      ],
-      cwd=REPO,
-      env=environ(JAX_PLATFORMS="cpu"),
-      capture_output=True,
-      text=True,
-      timeout=600,
+  proc = run_script(
+      "calibrate_probs",
+      f"--tokenizer_dir={tiny_runs / 'tokenizer'}",
+      f"--diffusion_dir={tiny_runs / 'diffusion'}",
+      f"--data_dir={tiny_runs / 'data'}",
+      "--split=val",
+      f"--out={out}",
   )
   assert proc.returncode == 0, proc.stderr
   table = json.loads(out.read_text())
