@@ -46,7 +46,7 @@ def cached(predictor, cache_dir: Path, run_name: str, model: str):
           "delta": out.delta,
       }
       arrays = {k: np.asarray(v) for k, v in fields.items()}
-      cache_dir.mkdir(exist_ok=True)
+      cache_dir.mkdir(parents=True, exist_ok=True)
       checksums.write_all({path: checksums.npz_bytes(**arrays)})
     with np.load(path) as z:
       probs, traj = z["hyp_probs"], z["trajectories"]

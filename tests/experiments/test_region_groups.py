@@ -13,6 +13,7 @@ from tests.subprocess_env import run_script
 
 def test_rows_per_candidate_and_recording(tiny_runs, tmp_path):
   splits = ("val", "test", "test_ood")  # one recording each in the tiny data
+  workdir = tmp_path / "new" / "workdir"  # created with its parents
   proc = run_script(
       "region_groups",
       f"--run={tiny_runs}",
@@ -20,10 +21,10 @@ def test_rows_per_candidate_and_recording(tiny_runs, tmp_path):
       f"--data_dir={tiny_runs / 'data'}",
       f"--splits={','.join(splits)}",
       "--max_scenarios=0",
-      f"--workdir={tmp_path}",
+      f"--workdir={workdir}",
   )
   assert proc.returncode == 0, proc.stderr
-  rows = json.loads((tmp_path / "region_groups.json").read_text())["rows"]
+  rows = json.loads((workdir / "region_groups.json").read_text())["rows"]
   assert [r["candidate"] for r in rows] == ["plain", *region_groups.COVARIATES]
   recordings = sorted(
       int(i)
@@ -38,4 +39,4 @@ def test_rows_per_candidate_and_recording(tiny_runs, tmp_path):
     assert (row["mean_error"], row["largest_error"]) == pytest.approx(
         region_groups.errors(counts, cover)
     )
-  assert (tmp_path / "region_groups.md").read_text() in proc.stdout
+  assert (workdir / "region_groups.md").read_text() in proc.stdout
