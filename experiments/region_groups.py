@@ -106,6 +106,13 @@ def main(argv):
   for part in ("tokenizer", _DENOISER.value, "data"):
     if not (run / part).is_dir():
       raise app.UsageError(f"--run: {run / part} is not a directory (a make demo run?)")
+  sets = [dataset.load_balanced(_DATA.value, s, _SEED.value, _MAX.value) for s in _SPLITS.value]
+  held = np.unique(np.concatenate([np.asarray(s.recording_id) for s in sets]))
+  if len(held) < 2:
+    raise app.UsageError(
+        f"--data_dir / --splits: {len(held)} recording(s) in {_DATA.value} "
+        f"{','.join(_SPLITS.value)}; leaving one out needs 2 or more"
+    )
   predictor = Predictor.load(run / "tokenizer", run / _DENOISER.value)
   predict = prediction_cache.cached(
       predictor, workdir / "predictions", run.name, prediction_cache.model_id(predictor)
@@ -113,10 +120,7 @@ def main(argv):
   val = dataset.load_split(run / "data", "val")
   val_model = predictive.cvmdx_models(predict(val, seed=_SEED.value))[0]
   bandwidths = model_scores.choose_bandwidths(val_model, np.asarray(val.future, np.float32))
-  found = [
-      _scores(predict, bandwidths, dataset.load_balanced(_DATA.value, s, _SEED.value, _MAX.value))
-      for s in _SPLITS.value
-  ]
+  found = [_scores(predict, bandwidths, s) for s in sets]
   u = np.concatenate([f[0] for f in found])
   covariates = {k: np.concatenate([f[1][k] for f in found]) for k in found[0][1]}
   recordings = np.concatenate([f[2] for f in found])

@@ -40,3 +40,17 @@ def test_rows_per_candidate_and_recording(tiny_runs, tmp_path):
         region_groups.errors(counts, cover)
     )
   assert (workdir / "region_groups.md").read_text() in proc.stdout
+
+
+def test_one_recording_is_refused_before_any_prediction(tiny_runs, tmp_path):
+  proc = run_script(
+      "region_groups",
+      f"--run={tiny_runs}",
+      "--denoiser=diffusion",
+      f"--data_dir={tiny_runs / 'data'}",
+      "--splits=val",
+      f"--workdir={tmp_path / 'w'}",
+  )
+  assert proc.returncode != 0
+  assert "--data_dir / --splits: 1 recording(s)" in proc.stderr
+  assert not (tmp_path / "w" / "predictions").exists()
