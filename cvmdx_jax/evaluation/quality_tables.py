@@ -206,19 +206,13 @@ def recording_table(runs: dict, splits, model: str = "cvmdx_samples") -> str:
     found = [r.splits[split] for r in runs.values() if model in r.splits[split]]
     if not found:
       continue
-    cover = {
-        k: np.mean(
-            [
-                region_groups.recording_coverage(f[model][k], f["meta"]["recording_id"])[2]
-                for f in found
-            ],
-            axis=0,
-        )
-        for k in [f"{kind}_cover_{s}s" for kind in ("cal", "delta") for s in h]
-    }
-    ids, counts, _ = region_groups.recording_coverage(
-        found[0][model][f"cal_cover_{h[0]}s"], found[0]["meta"]["recording_id"]
-    )
+    cover = {}
+    for k in (f"{kind}_cover_{s}s" for kind in ("cal", "delta") for s in h):
+      per_seed = [
+          region_groups.recording_coverage(f[model][k], f["meta"]["recording_id"]) for f in found
+      ]
+      ids, counts = per_seed[0][:2]
+      cover[k] = np.mean([c for _, _, c in per_seed], axis=0)
     for r, (rec, n) in enumerate(zip(ids, counts)):
       cells = " | ".join(f"{cover[k][r]:.3f}" for k in cover)
       lines.append(f"| {split} | {rec} | {n} | {cells} |")

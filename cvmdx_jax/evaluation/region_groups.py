@@ -49,7 +49,7 @@ def leave_one_out(u, recordings, x=None, level: float = 0.9, bins: int = conform
     ids (R,), counts (R,) scenarios per recording, coverage (R, H).
   """
   u, recordings = np.asarray(u), np.asarray(recordings)
-  ids = np.unique(recordings)
+  ids, counts = np.unique(recordings, return_counts=True)
   if len(ids) < 2:
     raise ValueError(f"leave_one_out needs scenarios of 2 recordings or more, got {len(ids)}")
   cover = np.empty((len(ids), u.shape[1]))
@@ -61,7 +61,7 @@ def leave_one_out(u, recordings, x=None, level: float = 0.9, bins: int = conform
       else:
         lv = conformal.mondrian_levels(u[~out, h], x[~out], x[out], (level,), bins)[:, 0]
       cover[r, h] = np.mean(u[out, h] <= lv)
-  return ids, np.array([np.sum(recordings == rec) for rec in ids]), cover
+  return ids, counts, cover
 
 
 def errors(counts, cover, level: float = 0.9) -> tuple[float, float]:
